@@ -1,0 +1,134 @@
+"""Typed, validated params: YAML sections -> frozen dataclasses.
+
+Every stage reads its sections of `params.yaml` through `load_section`, so an unknown key, a
+missing key or a value of the wrong type fails with one message naming the key path and the file.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import types
+import typing
+from pathlib import Path
+from typing import Any, TypeVar
+
+import yaml
+
+T = TypeVar("T")
+
+
+class ParamsError(ValueError):
+    """A params file is malformed: names the file and the dotted key."""
+
+
+def read_params(path: str | Path, overrides: list[str] | None = None) -> dict[str, Any]:
+    """Load a YAML params file and apply `key.sub=value` overrides (values parsed as YAML)."""
+    path = Path(path)
+    if not path.is_file():
+        raise ParamsError(f"params file not found: {path}")
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as err:
+        raise ParamsError(f"{path}: not valid YAML: {err}") from err
+    if not isinstance(data, dict):
+        raise ParamsError(f"{path}: top level must be a mapping, got {type(data).__name__}")
+    for item in overrides or []:
+        key, sep, raw = item.partition("=")
+        if not sep:
+            raise ParamsError(f"override {item!r} is not of the form key.sub=value")
+        node = data
+        *parents, leaf = key.split(".")
+        for part in parents:
+            if not isinstance(node.get(part), dict):
+                raise ParamsError(f"override {item!r}: {part!r} is not a section of {path}")
+            node = node[part]
+        if leaf not in node:
+            raise ParamsError(f"override {item!r}: unknown key {key!r} in {path}")
+        node[leaf] = yaml.safe_load(raw)
+    data["_source"] = str(path)
+    return data
+
+
+def load_section(params: dict[str, Any], name: str, cls: type[T]) -> T:
+    """Build dataclass `cls` from `params[name]`, validating keys and types."""
+    source = params.get("_source", "<params>")
+    if name not in params:
+        raise ParamsError(f"{source}: missing section {name!r}")
+    return _build(cls, params[name], name, source)
+
+
+def params_hash(params: dict[str, Any], sections: list[str]) -> str:
+    """Stable short hash of the named sections (what a stage's output depends on)."""
+    blob = json.dumps({s: params.get(s) for s in sections}, sort_keys=True, default=str)
+    return hashlib.sha256(blob.encode()).hexdigest()[:16]
+
+
+def _build(tp: Any, value: Any, key: str, source: str) -> Any:
+    origin = typing.get_origin(tp)
+    if dataclasses.is_dataclass(tp):
+        if not isinstance(value, dict):
+            raise ParamsError(f"{source}: {key} must be a mapping, got {value!r}")
+        hints = typing.get_type_hints(tp)
+        fields = {f.name: f for f in dataclasses.fields(tp)}
+        unknown = sorted(set(value) - set(fields))
+        if unknown:
+            raise ParamsError(f"{source}: unknown key {key}.{unknown[0]} (expected one of {sorted(fields)})")
+        kwargs = {}
+        for fname, field in fields.items():
+            if fname in value:
+                kwargs[fname] = _build(hints[fname], value[fname], f"{key}.{fname}", source)
+            elif field.default is dataclasses.MISSING and field.default_factory is dataclasses.MISSING:
+                raise ParamsError(f"{source}: missing key {key}.{fname}")
+        obj = tp(**kwargs)
+        check = getattr(obj, "validate", None)
+        if check is not None:
+            try:
+                check()
+            except ValueError as err:
+                raise ParamsError(f"{source}: {key}: {err}") from err
+        return obj
+    if origin is typing.Union or origin is types.UnionType:
+        args = typing.get_args(tp)
+        if value is None and type(None) in args:
+            return None
+        inner = [a for a in args if a is not type(None)]
+        return _build(inner[0], value, key, source)
+    if origin is typing.Literal:
+        if value not in typing.get_args(tp):
+            raise ParamsError(f"{source}: {key} must be one of {typing.get_args(tp)}, got {value!r}")
+        return value
+    if origin in (tuple, list):
+        if not isinstance(value, (list, tuple)):
+            raise ParamsError(f"{source}: {key} must be a list, got {value!r}")
+        args = typing.get_args(tp)
+        if origin is tuple and args and args[-1] is not Ellipsis:
+            if len(value) != len(args):
+                raise ParamsError(f"{source}: {key} must have {len(args)} entries, got {len(value)}")
+            return tuple(_build(a, v, f"{key}[{i}]", source) for i, (a, v) in enumerate(zip(args, value)))
+        item = args[0] if args else Any
+        built = [_build(item, v, f"{key}[{i}]", source) for i, v in enumerate(value)]
+        return tuple(built) if origin is tuple else built
+    if origin is dict:
+        if not isinstance(value, dict):
+            raise ParamsError(f"{source}: {key} must be a mapping, got {value!r}")
+        _, item = typing.get_args(tp)
+        return {k: _build(item, v, f"{key}.{k}", source) for k, v in value.items()}
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ParamsError(f"{source}: {key} must be a number, got {value!r}")
+        return float(value)
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ParamsError(f"{source}: {key} must be an integer, got {value!r}")
+        return value
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise ParamsError(f"{source}: {key} must be true or false, got {value!r}")
+        return value
+    if tp is str:
+        if not isinstance(value, str):
+            raise ParamsError(f"{source}: {key} must be a string, got {value!r}")
+        return value
+    return value

@@ -1,0 +1,36 @@
+"""Stage reports: JSON written atomically (temporary sibling, then rename)."""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+from pathlib import Path
+from typing import Any
+
+
+def write_json_atomic(path: str | Path, data: dict[str, Any]) -> Path:
+    """Write `data` as indented JSON at `path`; a reader never sees a half-written file."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    try:
+        tmp.write_text(json.dumps(data, indent=2, sort_keys=True, default=float) + "\n")
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return path
+
+
+def environment_info(device: str) -> dict[str, str]:
+    """Device and library versions, recorded beside every timing."""
+    import newton
+    import torch
+    import warp
+
+    info = {"device": device, "python": platform.python_version(), "torch": torch.__version__,
+            "warp": warp.__version__, "newton": newton.__version__, "cpu": platform.processor() or platform.machine(),
+            "cpu_count": str(os.cpu_count())}
+    if device.startswith("cuda"):
+        info["gpu"] = warp.get_device(device).name
+    return info

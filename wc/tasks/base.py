@@ -1,0 +1,92 @@
+"""Task programs: an initial-state sampler + an action program a_t from (cell, speed, amplitude).
+
+Tasks register by name, so adding one is one new module under wc/tasks/ that calls
+`register_task`; `wc.tasks.get_task` imports them all.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, ClassVar, Protocol
+
+import numpy as np
+
+from wc.dynamics import ObjectState
+from wc.scene.scene import Scene
+
+
+@dataclass(frozen=True)
+class EpisodeSpec:
+    """What the agent chose for one episode."""
+
+    task: str
+    seed: int
+    cell: int
+    speed: float  # task-specific speed scale [m/s]
+    amplitude: float  # task-specific motion amplitude [m]
+
+
+class Task(Protocol):
+    name: ClassVar[str]
+    objects: ClassVar[tuple[str, ...]]  # predicted objects this task's scene needs
+
+    def num_cells(self) -> int: ...
+
+    def speed_range(self) -> tuple[float, float]: ...
+
+    def amplitude_range(self) -> tuple[float, float]: ...
+
+    def initial_state(self, scene: Scene, spec: EpisodeSpec, rng: np.random.Generator) -> ObjectState:
+        """Objects placed for the episode, before settling."""
+        ...
+
+    def settle_action(self, scene: Scene, spec: EpisodeSpec, initial: ObjectState) -> np.ndarray:
+        """(14,) robot posture held while the objects settle; also frame 0's action."""
+        ...
+
+    def actions(self, scene: Scene, settled: ObjectState, spec: EpisodeSpec, start: np.ndarray,
+                frame_dt_s: float) -> np.ndarray:
+        """(T, 14) commanded actions from frame 0 (the settled state, action `start`) on; open loop."""
+        ...
+
+
+_REGISTRY: dict[str, tuple[type, type]] = {}
+
+
+def register_task(name: str, config_cls: type):
+    """Class decorator: register a task under `name` with its params dataclass."""
+
+    def wrap(cls: type) -> type:
+        cls.name = name
+        _REGISTRY[name] = (cls, config_cls)
+        return cls
+
+    return wrap
+
+
+def task_names() -> list[str]:
+    _import_all()
+    return sorted(_REGISTRY)
+
+
+def get_task(name: str, params: dict[str, Any]) -> Task:
+    """Instantiate task `name` from its section `tasks.<name>` of the params."""
+    from wc.config import load_section
+
+    _import_all()
+    if name not in _REGISTRY:
+        raise ValueError(f"unknown task {name!r}; known tasks: {sorted(_REGISTRY)}")
+    cls, config_cls = _REGISTRY[name]
+    tasks = {"_source": params.get("_source", "<params>"), **params.get("tasks", {})}
+    return cls(load_section(tasks, name, config_cls))
+
+
+def _import_all() -> None:
+    import importlib
+    import pkgutil
+
+    import wc.tasks
+
+    for module in pkgutil.iter_modules(wc.tasks.__path__):
+        if module.name != "base":
+            importlib.import_module(f"wc.tasks.{module.name}")

@@ -1,0 +1,172 @@
+"""Task 8, the policy task "right grasp and lift": pinch one handle with the right gripper, lift, hold.
+
+Coverage cell = (grasp depth below the handle's apex, position across the strap, initial bag yaw);
+speed = TCP speed [m/s]; amplitude = lift height [m].
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from wc.dynamics import ObjectState
+from wc.scene.ik import solve_tool_ik
+from wc.scene.scene import Scene
+from wc.sim.kinematic import quat_rotate
+from wc.tasks.base import EpisodeSpec, register_task
+
+
+@dataclass(frozen=True)
+class LiftHandleConfig:
+    grasp_depth_bins_m: tuple[float, ...]  # pinch this far below the handle apex
+    grasp_across_bins: tuple[float, ...]  # position across the strap width, 0..1
+    yaw_bins_deg: tuple[float, ...]  # initial bag yaw about z
+    bag_center_xy_m: tuple[float, float]
+    bag_jitter_m: float  # uniform xy jitter of the initial bag position
+    drop_height_m: float  # bag bottom above the table top before settling
+    speed_range_m_s: tuple[float, float]  # TCP speed
+    amplitude_range_m: tuple[float, float]  # lift height
+    start_height_m: float  # TCP above the handle apex while the bag settles
+    approach_height_m: float  # pre-grasp TCP height above the grasp point
+    open_m: float  # gripper opening while approaching
+    closed_m: float  # commanded opening when pinching
+    close_s: float
+    hold_s: float
+    ik_iterations: int
+    success_lift_m: float  # accepted if the bag's lowest vertex ends this far above the table
+
+    def validate(self) -> None:
+        for name in ("grasp_depth_bins_m", "grasp_across_bins", "yaw_bins_deg"):
+            if not getattr(self, name):
+                raise ValueError(f"{name} must list at least one bin")
+        lo, hi = self.speed_range_m_s
+        if not 0 < lo <= hi:
+            raise ValueError(f"speed_range_m_s must satisfy 0 < low <= high, got {self.speed_range_m_s}")
+        lo, hi = self.amplitude_range_m
+        if not 0 < lo <= hi:
+            raise ValueError(f"amplitude_range_m must satisfy 0 < low <= high, got {self.amplitude_range_m}")
+        if self.close_s <= 0 or self.hold_s < 0:
+            raise ValueError("close_s must be positive and hold_s non-negative")
+
+
+def _handle_of_right_arm(scene: Scene, x: np.ndarray) -> str:
+    """The bag handle nearer the right arm's base."""
+    bag = scene.objects["bag"]
+    centroid = {g: x[bag.groups[g]].mean(0) for g in ("handle_0", "handle_1")}
+    return min(centroid, key=lambda g: np.linalg.norm(centroid[g][:2] - scene.right_base[:2]))
+
+
+def grasp_frame(scene: Scene, x: np.ndarray, depth_m: float, across: float) -> tuple[np.ndarray, np.ndarray]:
+    """Grasp point (3,) and TCP rotation (3, 3) for pinching the right-arm handle in bag state x.
+
+    The pads straddle the strap's two legs below its apex and squeeze them together: approach
+    straight down, pad separation along the horizontal front-to-back direction of the strap.
+    """
+    bag = scene.objects["bag"]
+    xb = x[scene.vertex_slices()["bag"]]
+    idx = bag.groups[_handle_of_right_arm(scene, xb)]
+    u, s = bag.attributes["handle_u"][idx], bag.attributes["handle_s"][idx]
+    band = idx[np.abs(u - across) <= np.abs(u - across).min() + 1e-6]
+    apex = xb[band[np.argmax(xb[band, 2])]]
+    sep = xb[idx[s < 0.5]].mean(0) - xb[idx[s > 0.5]].mean(0)
+    sep[2] = 0.0
+    if np.linalg.norm(sep) < 1e-6:
+        sep = np.array([0.0, 1.0, 0.0])
+    y = sep / np.linalg.norm(sep)
+    z = np.array([0.0, 0.0, -1.0])
+    rot = np.stack([np.cross(y, z), y, z], axis=1)
+    return apex - np.array([0.0, 0.0, depth_m]), rot
+
+
+@register_task("lift_handle", LiftHandleConfig)
+class LiftHandle:
+    objects = ("bag",)
+
+    def __init__(self, config: LiftHandleConfig):
+        self.cfg = config
+
+    def _cell(self, cell: int) -> tuple[float, float, float]:
+        shape = (len(self.cfg.grasp_depth_bins_m), len(self.cfg.grasp_across_bins), len(self.cfg.yaw_bins_deg))
+        i, j, k = np.unravel_index(cell % self.num_cells(), shape)
+        return self.cfg.grasp_depth_bins_m[i], self.cfg.grasp_across_bins[j], self.cfg.yaw_bins_deg[k]
+
+    def num_cells(self) -> int:
+        return len(self.cfg.grasp_depth_bins_m) * len(self.cfg.grasp_across_bins) * len(self.cfg.yaw_bins_deg)
+
+    def speed_range(self) -> tuple[float, float]:
+        return self.cfg.speed_range_m_s
+
+    def amplitude_range(self) -> tuple[float, float]:
+        return self.cfg.amplitude_range_m
+
+    def initial_state(self, scene: Scene, spec: EpisodeSpec, rng: np.random.Generator) -> ObjectState:
+        _, _, yaw = self._cell(spec.cell)
+        half = np.deg2rad(yaw) / 2.0
+        quat = np.array([0.0, 0.0, np.sin(half), np.cos(half)])
+        centre = np.asarray(self.cfg.bag_center_xy_m) + rng.uniform(-1, 1, 2) * self.cfg.bag_jitter_m
+        offset = np.array([*centre, scene.table.top_z + self.cfg.drop_height_m])
+        x = quat_rotate(quat[None], scene.objects["bag"].vertices) + offset
+        return ObjectState(x.astype(np.float32), np.zeros_like(x, dtype=np.float32))
+
+    def _solve(self, scene: Scene, points: np.ndarray, rot: np.ndarray, q_init: np.ndarray) -> np.ndarray:
+        """Right-arm joints (K, 6) reaching TCP points (K, 3) with orientation rot, warm-started."""
+        q, pos_err, _ = solve_tool_ik(
+            torch.as_tensor(points, dtype=torch.float32),
+            torch.as_tensor(np.broadcast_to(rot, (len(points), 3, 3)).copy(), dtype=torch.float32),
+            torch.as_tensor(q_init, dtype=torch.float32), torch.as_tensor(scene.right_base),
+            iterations=self.cfg.ik_iterations)
+        if float(pos_err.max()) > 0.01:
+            raise ValueError(f"lift_handle: grasp target out of the right arm's reach (IK error {float(pos_err.max()):.3f} m)")
+        return q.numpy()
+
+    def _start_q(self, scene: Scene, x: np.ndarray, spec: EpisodeSpec) -> np.ndarray:
+        depth, across, _ = self._cell(spec.cell)
+        point, rot = grasp_frame(scene, x, depth, across)
+        above = point + np.array([0.0, 0.0, depth + self.cfg.start_height_m])
+        return self._solve(scene, above[None], rot, np.asarray(scene.home_q, np.float32)[None])[0]
+
+    def settle_action(self, scene: Scene, spec: EpisodeSpec, initial: ObjectState) -> np.ndarray:
+        action = scene.home_action()
+        action[7:13] = self._start_q(scene, initial.x, spec)
+        action[13] = self.cfg.open_m
+        return action
+
+    def check(self, scene: Scene, x: np.ndarray, action: np.ndarray) -> str | None:
+        """'not_lifted' unless the bag's lowest vertex is success_lift_m above the table at the end."""
+        bag = x[-1, scene.vertex_slices()["bag"]]
+        return None if bag[:, 2].min() - scene.table.top_z >= self.cfg.success_lift_m else "not_lifted"
+
+    def actions(self, scene: Scene, settled: ObjectState, spec: EpisodeSpec, start: np.ndarray,
+                frame_dt_s: float) -> np.ndarray:
+        cfg = self.cfg
+        depth, across, _ = self._cell(spec.cell)
+        grasp, rot = grasp_frame(scene, settled.x, depth, across)
+        start_tcp = grasp + np.array([0.0, 0.0, depth + cfg.start_height_m])
+        pre = grasp + np.array([0.0, 0.0, cfg.approach_height_m])
+        lifted = grasp + np.array([0.0, 0.0, spec.amplitude])
+        # (TCP position, gripper opening, duration [s] to reach it from the previous waypoint)
+        legs = [(pre, cfg.open_m, np.linalg.norm(pre - start_tcp) / spec.speed),
+                (grasp, cfg.open_m, cfg.approach_height_m / spec.speed),
+                (grasp, cfg.closed_m, cfg.close_s),
+                (lifted, cfg.closed_m, spec.amplitude / spec.speed),
+                (lifted, cfg.closed_m, cfg.hold_s)]
+        return self._trajectory(scene, start, start_tcp, legs, rot, frame_dt_s)
+
+    def _trajectory(self, scene: Scene, start: np.ndarray, start_tcp: np.ndarray, legs: list, rot: np.ndarray,
+                    frame_dt_s: float) -> np.ndarray:
+        """Frame-by-frame actions (T, 14) following straight TCP legs, IK solved per frame."""
+        frames = [start[None]]
+        tcp, opening, q = start_tcp, start[13], start[7:13]
+        for target, target_open, duration in legs:
+            n = max(1, int(np.ceil(duration / frame_dt_s)))
+            alpha = (np.arange(1, n + 1) / n)[:, None]
+            points = (1 - alpha) * tcp + alpha * target
+            q_leg = self._solve(scene, points, rot, np.repeat(q[None], n, axis=0))
+            leg = np.repeat(start[None], n, axis=0)
+            leg[:, 7:13] = q_leg
+            leg[:, 13] = (1 - alpha[:, 0]) * opening + alpha[:, 0] * target_open
+            frames.append(leg)
+            tcp, opening, q = target, target_open, q_leg[-1]
+        return np.concatenate(frames).astype(np.float32)
