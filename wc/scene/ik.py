@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 
 import torch
-from torch.func import jacfwd, vmap
+from torch.func import jacrev, vmap
 
 from wc.scene.piper import JOINT_LIMITS, clamp_to_limits, tool_frame
 
@@ -25,10 +25,11 @@ def solve_tool_ik(
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Joint angles q [B, 6] that put the TCP (piper.tool_pose) at target_pos [B, 3] (m), target_rot [B, 3, 3].
 
+    target_rot's columns are the tool axes in the world (x, y = pad separation, z = approach).
     Each iteration takes a damped least-squares (Levenberg) step on the residual
     [p - p_t, rot_weight_m * (R - R_t) / sqrt(2)] (the rotation part is ~ rot_weight_m * angle),
-    with the Jacobian from forward-mode autograd, each joint step capped at max_step_rad, then
-    clamps q to the joint limits. Stops early once every sample is within both tolerances.
+    with the Jacobian from reverse-mode autograd (torch.func.jacrev, vmapped over the batch), each
+    joint step capped at max_step_rad, then clamps q to the joint limits. Stops early once every sample is within both tolerances.
     base_pose: [7] or [B, 7]; opening (m): float or [B] (does not move the TCP).
     Returns q [B, 6], position error [B] (m) and rotation error [B] (rad); the latter from
     ||R - R_t||_F = 2 sqrt(2) sin(angle / 2), accurate at small angles unlike acos of the trace.
@@ -55,7 +56,7 @@ def solve_tool_ik(
         chord = torch.linalg.vector_norm(r[:, 3:], dim=-1) / (scale * 2.0 * math.sqrt(2.0))
         return torch.linalg.vector_norm(r[:, :3], dim=-1), 2.0 * torch.asin(chord.clamp(max=1.0))
 
-    jac = vmap(jacfwd(residual, has_aux=True))
+    jac = vmap(jacrev(residual, has_aux=True))
     args = (target_pos, target_rot, base, opening)
     eye = torch.eye(6, device=dev, dtype=dt)
     lower, upper = torch.as_tensor(JOINT_LIMITS, device=dev, dtype=dt).unbind(-1)

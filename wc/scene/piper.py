@@ -47,13 +47,17 @@ class JointSpec:
 CHAIN: tuple[JointSpec, ...] = (
     JointSpec("link1", "base_link", "revolute", (0, 0, 0.123), (0.707105, 0, 0, -0.707108), (0, 0, 1), -2.618, 2.618),
     JointSpec("link2", "link1", "revolute", (0, 0, 0), (0.499998, 0.5, -0.500002, -0.5), (0, 0, 1), 0.0, 3.14),
-    JointSpec("link3", "link2", "revolute", (0.28358, 0.028726, 0), (0.998726, 0, 0, 0.0504536), (0, 0, 1), -2.697, 0.0),
+    JointSpec(
+        "link3", "link2", "revolute", (0.28358, 0.028726, 0), (0.998726, 0, 0, 0.0504536), (0, 0, 1), -2.697, 0.0
+    ),
     JointSpec(
         "link4", "link3", "revolute", (-0.24221, 0.068514, 0), (0.544767, -0.544769, -0.450809, 0.450808), (0, 0, 1),
         -1.832, 1.832,
     ),
     JointSpec("link5", "link4", "revolute", (0, 0, 0), (0.707105, 0.707108, 0, 0), (0, 0, 1), -1.22, 1.22),
-    JointSpec("link6", "link5", "revolute", (0, 0.091, 0.0014165), (0, 0, -0.707105, -0.707108), (0, 0, 1), -3.14, 3.14),
+    JointSpec(
+        "link6", "link5", "revolute", (0, 0.091, 0.0014165), (0, 0, -0.707105, -0.707108), (0, 0, 1), -3.14, 3.14
+    ),
     JointSpec(
         "finger_a", "link6", "prismatic", (0, 0, 0.13503), (1.89468e-08, 1.89469e-08, 0.707108, 0.707105), (0, 0, 1),
         -0.05, 0.05,
@@ -70,6 +74,11 @@ HOME_Q = np.array([0.0, 1.57, -1.3485, 0.0, 0.0, 0.0], dtype=np.float32)  # rad;
 
 PAD_HALF_EXTENTS_M = (0.02, 0.03, 0.005)  # finger frame: x, along-finger, outward (0.04 x 0.06 x 0.01 box)
 PAD_ALONG_M = 0.025  # pad centre along the finger from the finger origin
+# pad centres in the finger frames: along the finger is +y for finger_a and -y for finger_b; outward is +z
+PAD_CENTRE_IN_FINGER_M = {
+    "finger_a": (0.0, PAD_ALONG_M, PAD_HALF_EXTENTS_M[2]),
+    "finger_b": (0.0, -PAD_ALONG_M, PAD_HALF_EXTENTS_M[2]),
+}
 FINGER_ORIGIN_IN_LINK6_M = CHAIN[6].origin_pos
 TCP_IN_LINK6_M = (0.0, 0.0, FINGER_ORIGIN_IN_LINK6_M[2] + PAD_ALONG_M)  # along the fingers is link6 +z
 
@@ -86,21 +95,6 @@ _PARENT_INDEX = tuple(-1 if j.parent == "base_link" else LINK_NAMES.index(j.pare
 
 
 # ---- quaternion helpers (xyzw, broadcasting over leading dims) ----
-
-def quat_multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Hamilton product a*b of xyzw quaternions [..., 4]."""
-    ax, ay, az, aw = a.unbind(-1)
-    bx, by, bz, bw = b.unbind(-1)
-    return torch.stack(
-        (
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-            aw * bw - ax * bx - ay * by - az * bz,
-        ),
-        dim=-1,
-    )
-
 
 def quat_rotate(q: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
     """Rotate vectors v [..., 3] by unit xyzw quaternions q [..., 4]."""
@@ -140,21 +134,15 @@ def _skew(a: np.ndarray) -> np.ndarray:
     return np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
 
 
-def _quat_to_matrix_np(q: np.ndarray) -> np.ndarray:
-    x, y, z, w = q
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-        ]
-    )
+def quat_to_matrix_np(q: np.ndarray) -> np.ndarray:
+    """Rotation matrices [..., 3, 3] of xyzw quaternions [..., 4], numpy float64."""
+    return quat_to_matrix(torch.as_tensor(np.asarray(q, dtype=np.float64))).numpy()
 
 
 # Per joint, as row-vector operators so a step is a few batched matmuls (few ops keep autograd cheap):
 # quat * origin_quat = quat @ _ORIGIN_QMAT_T; quat * (axis sin(v/2), cos(v/2)) = cos quat + sin quat @ _AXIS_QMAT_T;
 # rot @ R_axis(v) = rot + sin(v) rot @ K + (1 - cos(v)) rot @ K^2 (Rodrigues).
-_ORIGIN_ROT = np.stack([_quat_to_matrix_np(q) for q in ORIGIN_QUAT_XYZW.astype(np.float64)])
+_ORIGIN_ROT = np.stack([quat_to_matrix_np(q) for q in ORIGIN_QUAT_XYZW.astype(np.float64)])
 _ORIGIN_QMAT_T = np.stack([_right_multiply_matrix(q).T for q in ORIGIN_QUAT_XYZW.astype(np.float64)])
 _AXIS_QMAT_T = np.stack([_right_multiply_matrix(np.append(a, 0.0)).T for a in AXES.astype(np.float64)])
 _AXIS_K = np.stack([_skew(a) for a in AXES.astype(np.float64)])
@@ -197,7 +185,7 @@ def chain_frames(
     opening = torch.as_tensor(opening, device=q.device, dtype=q.dtype).expand(batch)
     j7, j8 = gripper_to_finger_joints(opening)
     values = torch.cat((q, j7[..., None], j8[..., None]), dim=-1)[..., None]  # [..., 8, 1]
-    base_pose = base_pose.to(device=q.device, dtype=q.dtype)
+    base_pose = torch.as_tensor(base_pose, device=q.device, dtype=q.dtype)
     base_quat = base_pose[..., 3:].expand(*batch, 4)
     base = (base_pose[..., :3].expand(*batch, 3), quat_to_matrix(base_quat), base_quat)
 
@@ -222,7 +210,8 @@ def chain_frames(
 def forward_kinematics(q: torch.Tensor, opening: torch.Tensor | float, base_pose: torch.Tensor) -> torch.Tensor:
     """World poses [..., 8, 7] of LINK_NAMES for joints q [..., 6] (rad) and gripper opening [...] (m).
 
-    base_pose: the base_link pose, [7] or broadcastable [..., 7]. Differentiable; no clamping.
+    base_pose: the base_link pose, [7] or broadcastable [..., 7]. Differentiable; no clamping;
+    computed in q's dtype and device (float32 expected).
     """
     pos, _, quat = chain_frames(q, opening, base_pose)
     return torch.cat((pos, quat), dim=-1)
@@ -230,9 +219,9 @@ def forward_kinematics(q: torch.Tensor, opening: torch.Tensor | float, base_pose
 
 def forward_kinematics_np(q: np.ndarray, opening: np.ndarray | float, base_pose: np.ndarray) -> np.ndarray:
     """numpy wrapper of forward_kinematics: float32 poses [..., 8, 7]."""
-    t = lambda a: torch.as_tensor(np.asarray(a, dtype=np.float32))  # noqa: E731
+    q, opening, base_pose = (torch.as_tensor(np.asarray(a, dtype=np.float32)) for a in (q, opening, base_pose))
     with torch.no_grad():
-        return forward_kinematics(t(q), t(opening), t(base_pose)).numpy()
+        return forward_kinematics(q, opening, base_pose).numpy()
 
 
 def tool_frame(
@@ -253,9 +242,8 @@ def tool_pose(q: torch.Tensor, opening: torch.Tensor | float, base_pose: torch.T
 
 def pad_centres(poses: torch.Tensor) -> torch.Tensor:
     """World pad centres [..., 2, 3] (finger_a, finger_b) from FK poses [..., 8, 7]."""
-    half = PAD_HALF_EXTENTS_M[2]
     local = torch.tensor(
-        [[0.0, PAD_ALONG_M, half], [0.0, -PAD_ALONG_M, half]], device=poses.device, dtype=poses.dtype
+        [PAD_CENTRE_IN_FINGER_M["finger_a"], PAD_CENTRE_IN_FINGER_M["finger_b"]], device=poses.device, dtype=poses.dtype
     )
     return transform_point(poses[..., 6:8, :], local.expand(*poses.shape[:-2], 2, 3))
 

@@ -28,8 +28,11 @@ class LiftHandleConfig:
     drop_height_m: float  # bag bottom above the table top before settling
     speed_range_m_s: tuple[float, float]  # TCP speed
     amplitude_range_m: tuple[float, float]  # lift height
-    start_height_m: float  # TCP above the handle apex while the bag settles
-    approach_height_m: float  # pre-grasp TCP height above the grasp point
+    start_height_m: float  # TCP distance back along the approach axis while the bag settles
+    approach_height_m: float  # pre-grasp TCP distance back along the approach axis
+    approach_tilt_deg: float  # approach axis tilted from vertical, away from the arm's base
+    lift_tilt_deg: float  # tilt at the top of the lift (the arm reaches higher with more tilt)
+    lift_retract_m: float  # the lift also pulls back this far towards the arm's base
     open_m: float  # gripper opening while approaching
     closed_m: float  # commanded opening when pinching
     close_s: float
@@ -58,11 +61,21 @@ def _handle_of_right_arm(scene: Scene, x: np.ndarray) -> str:
     return min(centroid, key=lambda g: np.linalg.norm(centroid[g][:2] - scene.right_base[:2]))
 
 
-def grasp_frame(scene: Scene, x: np.ndarray, depth_m: float, across: float) -> tuple[np.ndarray, np.ndarray]:
-    """Grasp point (3,) and TCP rotation (3, 3) for pinching the right-arm handle in bag state x.
+def tool_rotation(separation: np.ndarray, away: np.ndarray, tilt_deg: float) -> np.ndarray:
+    """TCP rotation (3, 3) [x, y = pad separation, z = approach]: approach down, tilted towards `away`."""
+    tilt = np.deg2rad(tilt_deg)
+    z = -np.cos(tilt) * np.array([0.0, 0.0, 1.0]) + np.sin(tilt) * away
+    return np.stack([np.cross(separation, z), separation, z], axis=1)
 
-    The pads straddle the strap's two legs below its apex and squeeze them together: approach
-    straight down, pad separation along the horizontal front-to-back direction of the strap.
+
+def grasp_frame(scene: Scene, x: np.ndarray, depth_m: float, across: float,
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Grasp point (3,), pad separation axis (3,) and horizontal direction away from the right arm's
+    base (3,) for pinching the right-arm handle in state x.
+
+    The pads straddle the strap's two legs below its apex and squeeze them together: the pad
+    separation axis is the strap's horizontal front-to-back direction; the approach points down,
+    tilted away from the arm's base (a PiPER cannot point straight down at handle height).
     """
     bag = scene.objects["bag"]
     xb = x[scene.vertex_slices()["bag"]]
@@ -70,14 +83,22 @@ def grasp_frame(scene: Scene, x: np.ndarray, depth_m: float, across: float) -> t
     u, s = bag.attributes["handle_u"][idx], bag.attributes["handle_s"][idx]
     band = idx[np.abs(u - across) <= np.abs(u - across).min() + 1e-6]
     apex = xb[band[np.argmax(xb[band, 2])]]
+    point = apex - np.array([0.0, 0.0, depth_m])
     sep = xb[idx[s < 0.5]].mean(0) - xb[idx[s > 0.5]].mean(0)
     sep[2] = 0.0
-    if np.linalg.norm(sep) < 1e-6:
-        sep = np.array([0.0, 1.0, 0.0])
-    y = sep / np.linalg.norm(sep)
-    z = np.array([0.0, 0.0, -1.0])
-    rot = np.stack([np.cross(y, z), y, z], axis=1)
-    return apex - np.array([0.0, 0.0, depth_m]), rot
+    y = sep / np.linalg.norm(sep) if np.linalg.norm(sep) > 1e-6 else np.array([0.0, 1.0, 0.0])
+    home_y = quat_rotate(scene.right_base[3:], np.array([0.0, 1.0, 0.0]))  # TCP y at home, yawed with the base
+    y = y if y @ home_y >= 0 else -y  # the pads are symmetric: take the sign that needs the least wrist roll
+    # centre the pads between the strap's legs at and below the pinch height (a settled strap may lean)
+    legs = xb[idx[(xb[idx, 2] <= point[2] + 0.5 * depth_m) & (xb[idx, 2] >= point[2] - depth_m)]]
+    if len(legs):
+        spread = (legs - point) @ y
+        point = point + 0.5 * (spread.min() + spread.max()) * y
+    away = point - scene.right_base[:3]
+    away[2] = 0.0
+    away -= (away @ y) * y
+    away = away / np.linalg.norm(away) if np.linalg.norm(away) > 1e-6 else np.zeros(3)
+    return point, y, away
 
 
 @register_task("lift_handle", LiftHandleConfig)
@@ -111,7 +132,7 @@ class LiftHandle:
         return ObjectState(x.astype(np.float32), np.zeros_like(x, dtype=np.float32))
 
     def _solve(self, scene: Scene, points: np.ndarray, rot: np.ndarray, q_init: np.ndarray) -> np.ndarray:
-        """Right-arm joints (K, 6) reaching TCP points (K, 3) with orientation rot, warm-started."""
+        """Right-arm joints (K, 6) reaching TCP points (K, 3) with rotations (3, 3) or (K, 3, 3), warm-started."""
         q, pos_err, _ = solve_tool_ik(
             torch.as_tensor(points, dtype=torch.float32),
             torch.as_tensor(np.broadcast_to(rot, (len(points), 3, 3)).copy(), dtype=torch.float32),
@@ -123,8 +144,9 @@ class LiftHandle:
 
     def _start_q(self, scene: Scene, x: np.ndarray, spec: EpisodeSpec) -> np.ndarray:
         depth, across, _ = self._cell(spec.cell)
-        point, rot = grasp_frame(scene, x, depth, across)
-        above = point + np.array([0.0, 0.0, depth + self.cfg.start_height_m])
+        point, y, away = grasp_frame(scene, x, depth, across)
+        rot = tool_rotation(y, away, self.cfg.approach_tilt_deg)
+        above = point - self.cfg.start_height_m * rot[:, 2]
         return self._solve(scene, above[None], rot, np.asarray(scene.home_q, np.float32)[None])[0]
 
     def settle_action(self, scene: Scene, spec: EpisodeSpec, initial: ObjectState) -> np.ndarray:
@@ -142,31 +164,34 @@ class LiftHandle:
                 frame_dt_s: float) -> np.ndarray:
         cfg = self.cfg
         depth, across, _ = self._cell(spec.cell)
-        grasp, rot = grasp_frame(scene, settled.x, depth, across)
-        start_tcp = grasp + np.array([0.0, 0.0, depth + cfg.start_height_m])
-        pre = grasp + np.array([0.0, 0.0, cfg.approach_height_m])
-        lifted = grasp + np.array([0.0, 0.0, spec.amplitude])
-        # (TCP position, gripper opening, duration [s] to reach it from the previous waypoint)
-        legs = [(pre, cfg.open_m, np.linalg.norm(pre - start_tcp) / spec.speed),
-                (grasp, cfg.open_m, cfg.approach_height_m / spec.speed),
-                (grasp, cfg.closed_m, cfg.close_s),
-                (lifted, cfg.closed_m, spec.amplitude / spec.speed),
-                (lifted, cfg.closed_m, cfg.hold_s)]
-        return self._trajectory(scene, start, start_tcp, legs, rot, frame_dt_s)
+        grasp, y, away = grasp_frame(scene, settled.x, depth, across)
+        approach = tool_rotation(y, away, cfg.approach_tilt_deg)[:, 2]
+        start_tcp = grasp - cfg.start_height_m * approach  # back along the approach axis
+        pre = grasp - cfg.approach_height_m * approach
+        lifted = grasp + np.array([0.0, 0.0, spec.amplitude]) - cfg.lift_retract_m * away
+        tilt0, tilt1 = cfg.approach_tilt_deg, cfg.lift_tilt_deg
+        # (TCP position, tilt, gripper opening, duration [s] to reach them from the previous waypoint)
+        legs = [(pre, tilt0, cfg.open_m, np.linalg.norm(pre - start_tcp) / spec.speed),
+                (grasp, tilt0, cfg.open_m, cfg.approach_height_m / spec.speed),
+                (grasp, tilt0, cfg.closed_m, cfg.close_s),
+                (lifted, tilt1, cfg.closed_m, np.linalg.norm(lifted - grasp) / spec.speed),
+                (lifted, tilt1, cfg.closed_m, cfg.hold_s)]
+        return self._trajectory(scene, start, start_tcp, legs, y, away, frame_dt_s)
 
-    def _trajectory(self, scene: Scene, start: np.ndarray, start_tcp: np.ndarray, legs: list, rot: np.ndarray,
-                    frame_dt_s: float) -> np.ndarray:
+    def _trajectory(self, scene: Scene, start: np.ndarray, start_tcp: np.ndarray, legs: list, y: np.ndarray,
+                    away: np.ndarray, frame_dt_s: float) -> np.ndarray:
         """Frame-by-frame actions (T, 14) following straight TCP legs, IK solved per frame."""
         frames = [start[None]]
-        tcp, opening, q = start_tcp, start[13], start[7:13]
-        for target, target_open, duration in legs:
+        tcp, tilt, opening, q = start_tcp, self.cfg.approach_tilt_deg, start[13], start[7:13]
+        for target, target_tilt, target_open, duration in legs:
             n = max(1, int(np.ceil(duration / frame_dt_s)))
             alpha = (np.arange(1, n + 1) / n)[:, None]
             points = (1 - alpha) * tcp + alpha * target
-            q_leg = self._solve(scene, points, rot, np.repeat(q[None], n, axis=0))
+            rots = np.stack([tool_rotation(y, away, (1 - a) * tilt + a * target_tilt) for a in alpha[:, 0]])
+            q_leg = self._solve(scene, points, rots, np.repeat(q[None], n, axis=0))
             leg = np.repeat(start[None], n, axis=0)
             leg[:, 7:13] = q_leg
             leg[:, 13] = (1 - alpha[:, 0]) * opening + alpha[:, 0] * target_open
             frames.append(leg)
-            tcp, opening, q = target, target_open, q_leg[-1]
+            tcp, tilt, opening, q = target, target_tilt, target_open, q_leg[-1]
         return np.concatenate(frames).astype(np.float32)
