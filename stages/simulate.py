@@ -58,14 +58,16 @@ def simulate(params: dict[str, Any], out: str | Path = "data/source/raw.zarr",
                 for record in run_episodes(scene, task, task_index, sim, planner, agent_cfg.episodes_per_task,
                                            agent_cfg.seed, on_frame=lambda: bar.update(sim.worlds)):
                     spec = record.spec
+                    if record.first_failure:
+                        failures[record.first_failure] = failures.get(record.first_failure, 0) + 1
+                    if record.x is None:  # never simulated: nothing to store
+                        continue
                     writer.add_episode(record.x, record.v, record.action, record.link_poses, record.env_poses,
                                        task=spec.task, seed=spec.seed, cell=spec.cell, speed=spec.speed,
                                        amplitude=spec.amplitude, split=None, accepted=record.first_failure is None,
                                        first_failure=record.first_failure, source="simulator")
                     frames += len(record.x)
                     accepted += record.first_failure is None
-                    if record.first_failure:
-                        failures[record.first_failure] = failures.get(record.first_failure, 0) + 1
                     bar.set_postfix(accepted=accepted)
             steps += sim.solver_steps
             per_task[task.name] = {"episodes": agent_cfg.episodes_per_task, "accepted": accepted,

@@ -10,7 +10,7 @@ import numpy as np
 from wc.agent.planner import Planner
 from wc.scene.scene import Scene
 from wc.sim.newton_sim import NewtonSimulator
-from wc.tasks.base import EpisodeSpec, Task
+from wc.tasks.base import EpisodeSpec, InfeasibleEpisode, Task
 
 
 @dataclass(frozen=True)
@@ -28,13 +28,15 @@ class AgentConfig:
 
 @dataclass
 class EpisodeRecord:
+    """One executed episode; arrays are None when it could not be planned (first_failure 'unreachable')."""
+
     spec: EpisodeSpec
-    x: np.ndarray  # (T, N, 3)
-    v: np.ndarray
-    action: np.ndarray  # (T, 14)
-    link_poses: np.ndarray  # (T, L, 7)
-    env_poses: np.ndarray  # (T, E, 7)
     first_failure: str | None
+    x: np.ndarray | None = None  # (T, N, 3)
+    v: np.ndarray | None = None
+    action: np.ndarray | None = None  # (T, 14)
+    link_poses: np.ndarray | None = None  # (T, L, 7)
+    env_poses: np.ndarray | None = None  # (T, E, 7)
 
 
 def episode_seed(stage_seed: int, task_index: int, episode_index: int) -> int:
@@ -61,15 +63,31 @@ def run_episodes(scene: Scene, task: Task, task_index: int, sim: NewtonSimulator
     for first in range(0, count, sim.worlds):
         specs = [planner.propose(task, episode_seed(stage_seed, task_index, i))
                  for i in range(first, min(count, first + sim.worlds))]
-        initial = [task.initial_state(scene, s, np.random.default_rng(s.seed)) for s in specs]  # Reset
-        held = [task.settle_action(scene, s, init) for s, init in zip(specs, initial)]
-        settled = sim.settle(initial, held, sim.cfg.settle_s)
-        actions = [task.actions(scene, st, s, a0, sim.cfg.frame_dt_s) for st, s, a0 in zip(settled, specs, held)]
-        length = max(len(a) for a in actions)
-        actions = [pad_to_length(a, length) for a in actions]
-        results = sim.rollout_batch(settled, actions, on_frame=on_frame)  # Execute
+        planned = []
+        for spec in specs:  # Reset
+            try:
+                initial = task.initial_state(scene, spec, np.random.default_rng(spec.seed))
+                planned.append((spec, initial, task.settle_action(scene, spec, initial)))
+            except InfeasibleEpisode:
+                planner.record(spec, "unreachable")
+                yield EpisodeRecord(spec, "unreachable")
+        if not planned:
+            continue
+        settled = sim.settle([p[1] for p in planned], [p[2] for p in planned], sim.cfg.settle_s)
+        runnable = []
+        for (spec, _, held), state in zip(planned, settled):
+            try:
+                runnable.append((spec, state, task.actions(scene, state, spec, held, sim.cfg.frame_dt_s)))
+            except InfeasibleEpisode:
+                planner.record(spec, "unreachable")
+                yield EpisodeRecord(spec, "unreachable")
+        if not runnable:
+            continue
+        length = max(len(r[2]) for r in runnable)
+        actions = [pad_to_length(r[2], length) for r in runnable]
+        results = sim.rollout_batch([r[1] for r in runnable], actions, on_frame=on_frame)  # Execute
         env = np.repeat(scene.env_poses()[None], length, axis=0)
-        for spec, act, (x, v) in zip(specs, actions, results):
+        for (spec, _, _), act, (x, v) in zip(runnable, actions, results):
             failure = first_failure(scene, task, x, v, act)  # Validate
             planner.record(spec, failure)
-            yield EpisodeRecord(spec, x, v, act, scene.link_poses(act), env, failure)  # Accept (or log)
+            yield EpisodeRecord(spec, failure, x, v, act, scene.link_poses(act), env)  # Accept (or log)

@@ -135,7 +135,7 @@ class NewtonSimulator:
 
     def _write_state(self, states: list[ObjectState], action: np.ndarray) -> None:
         """Set particles, rigid bodies and robot links of every world (frame-0 inputs)."""
-        q = self.state_0.particle_q.numpy().reshape(self.worlds, -1, 3)
+        q = np.zeros((self.worlds, self.particles_per_world, 3), np.float32)
         qd = np.zeros_like(q)
         body_q = self.state_0.body_q.numpy().reshape(self.worlds, self.bodies_per_world, 7)
         body_qd = np.zeros((self.worlds, self.bodies_per_world, 6), np.float32)
@@ -156,15 +156,18 @@ class NewtonSimulator:
                     body_q[w, body], body_qd[w, body] = pose, twist
             body_q[w, : self.num_links] = self.scene.link_poses(action[min(w, len(action) - 1)])
         for s in (self.state_0, self.state_1):
-            s.particle_q.assign(q.reshape(-1, 3))
-            s.particle_qd.assign(qd.reshape(-1, 3))
+            if self.particles_per_world:
+                s.particle_q.assign(q.reshape(-1, 3))
+                s.particle_qd.assign(qd.reshape(-1, 3))
             s.body_q.assign(body_q.reshape(-1, 7))
             s.body_qd.assign(body_qd.reshape(-1, 6))
 
     def _read_state(self) -> tuple[np.ndarray, np.ndarray]:
         """Concatenated object vertices of every world: x, v each (W, N, 3), not checked finite."""
-        q = self.state_0.particle_q.numpy().reshape(self.worlds, -1, 3)
-        qd = self.state_0.particle_qd.numpy().reshape(self.worlds, -1, 3)
+        q = qd = np.zeros((self.worlds, 0, 3), np.float32)
+        if self.particles_per_world:
+            q = self.state_0.particle_q.numpy().reshape(self.worlds, -1, 3)
+            qd = self.state_0.particle_qd.numpy().reshape(self.worlds, -1, 3)
         body_q = self.state_0.body_q.numpy().reshape(self.worlds, self.bodies_per_world, 7)
         body_qd = self.state_0.body_qd.numpy().reshape(self.worlds, self.bodies_per_world, 6)
         out = []
@@ -203,17 +206,20 @@ class NewtonSimulator:
         twists = pose_twists(prev, poses, self.cfg.dt_s)
         self._kin_poses.assign(np.ascontiguousarray(poses.transpose(1, 0, 2, 3).reshape(self.cfg.substeps, -1, 7)))
         self._kin_twists.assign(np.ascontiguousarray(twists.transpose(1, 0, 2, 3).reshape(self.cfg.substeps, -1, 6)))
-        if self.cfg.self_contact:
+        if self.cfg.self_contact and self.particles_per_world:
             self.solver.rebuild_bvh(self.state_0)
-        use_graph = wp.get_device(self.device).is_cuda and self.cfg.substeps % 2 == 0
+        # A CUDA graph of one frame replays the substeps without launch gaps. The first frame runs
+        # eagerly, since solver buffers may grow on first use; an even substep count returns the
+        # swapped states to the arrays the graph captured.
+        use_graph = wp.get_device(self.device).is_cuda and self.cfg.substeps % 2 == 0 and self.solver_steps > 0
         if use_graph and self._graph is None:
             with wp.ScopedCapture(device=self.device) as capture:
                 self._substeps()
             self._graph = capture.graph
-        elif not use_graph:
-            self._substeps()
         if use_graph:
             wp.capture_launch(self._graph)
+        else:
+            self._substeps()
         self.solver_steps += self.cfg.substeps
 
     def _batch(self, items: list) -> list:

@@ -15,6 +15,10 @@ from wc.dynamics import ObjectState
 from wc.scene.scene import Scene
 
 
+class InfeasibleEpisode(ValueError):
+    """The task cannot plan this episode (e.g. a target out of the robot's reach)."""
+
+
 @dataclass(frozen=True)
 class EpisodeSpec:
     """What the agent chose for one episode."""

@@ -15,7 +15,7 @@ from wc.dynamics import ObjectState
 from wc.scene.ik import solve_tool_ik
 from wc.scene.scene import Scene
 from wc.sim.kinematic import quat_rotate
-from wc.tasks.base import EpisodeSpec, register_task
+from wc.tasks.base import EpisodeSpec, InfeasibleEpisode, register_task
 
 
 @dataclass(frozen=True)
@@ -62,10 +62,13 @@ def _handle_of_right_arm(scene: Scene, x: np.ndarray) -> str:
 
 
 def tool_rotation(separation: np.ndarray, away: np.ndarray, tilt_deg: float) -> np.ndarray:
-    """TCP rotation (3, 3) [x, y = pad separation, z = approach]: approach down, tilted towards `away`."""
+    """TCP rotation (3, 3) [x, y = pad separation, z = approach]: the approach points down, tilted by
+    tilt_deg towards the horizontal `away`; the pads separate along `separation` made normal to it."""
     tilt = np.deg2rad(tilt_deg)
     z = -np.cos(tilt) * np.array([0.0, 0.0, 1.0]) + np.sin(tilt) * away
-    return np.stack([np.cross(separation, z), separation, z], axis=1)
+    y = separation - (separation @ z) * z
+    y /= np.linalg.norm(y)
+    return np.stack([np.cross(y, z), y, z], axis=1)
 
 
 def grasp_frame(scene: Scene, x: np.ndarray, depth_m: float, across: float,
@@ -94,9 +97,8 @@ def grasp_frame(scene: Scene, x: np.ndarray, depth_m: float, across: float,
     if len(legs):
         spread = (legs - point) @ y
         point = point + 0.5 * (spread.min() + spread.max()) * y
-    away = point - scene.right_base[:3]
+    away = point - scene.right_base[:3]  # radial: the arm tilts its tool most easily in its own plane
     away[2] = 0.0
-    away -= (away @ y) * y
     away = away / np.linalg.norm(away) if np.linalg.norm(away) > 1e-6 else np.zeros(3)
     return point, y, away
 
@@ -139,7 +141,7 @@ class LiftHandle:
             torch.as_tensor(q_init, dtype=torch.float32), torch.as_tensor(scene.right_base),
             iterations=self.cfg.ik_iterations)
         if float(pos_err.max()) > 0.01:
-            raise ValueError(f"lift_handle: grasp target out of the right arm's reach (IK error {float(pos_err.max()):.3f} m)")
+            raise InfeasibleEpisode(f"lift_handle: target out of the right arm's reach (IK error {float(pos_err.max()):.3f} m)")
         return q.numpy()
 
     def _start_q(self, scene: Scene, x: np.ndarray, spec: EpisodeSpec) -> np.ndarray:

@@ -1,0 +1,85 @@
+"""Params loading: every malformed params file fails with a message naming the key and the file."""
+
+from pathlib import Path
+
+import pytest
+import yaml
+
+from wc.config import ParamsError, load_section, params_hash, read_params
+from wc.scene.config import SceneConfig
+from wc.sim.config import SimConfig
+from wc.tasks.base import get_task, task_names
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _write(tmp_path: Path, data: dict) -> Path:
+    path = tmp_path / "params.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+@pytest.mark.parametrize("file", ["params.yaml", "params/gpu.yaml"])
+def test_shipped_params_load(file):
+    params = read_params(ROOT / file)
+    assert load_section(params, "scene", SceneConfig).bag.target_vertices > 0
+    assert load_section(params, "sim", SimConfig).frame_dt_s == pytest.approx(0.04)
+    for name in params["agent"]["tasks"]:
+        get_task(name, params)
+
+
+def test_unknown_key_is_named(tmp_path):
+    data = read_params(ROOT / "params.yaml")
+    data["sim"]["iteratons"] = 3
+    with pytest.raises(ParamsError, match=r"unknown key sim\.iteratons"):
+        load_section(read_params(_write(tmp_path, data)), "sim", SimConfig)
+
+
+def test_missing_key_is_named(tmp_path):
+    data = read_params(ROOT / "params.yaml")
+    del data["scene"]["bag"]["height_m"]
+    path = _write(tmp_path, data)
+    with pytest.raises(ParamsError, match=r"missing key scene\.bag\.height_m") as err:
+        load_section(read_params(path), "scene", SceneConfig)
+    assert str(path) in str(err.value)
+
+
+@pytest.mark.parametrize("value", [0, -5])
+def test_non_positive_resolution_rejected(tmp_path, value):
+    params = read_params(ROOT / "params.yaml", [f"scene.bag.target_vertices={value}"])
+    with pytest.raises(ParamsError, match="target_vertices must be positive"):
+        load_section(params, "scene", SceneConfig)
+
+
+def test_wrong_type_rejected():
+    params = read_params(ROOT / "params.yaml", ["sim.iterations=ten"])
+    with pytest.raises(ParamsError, match=r"sim\.iterations must be an integer"):
+        load_section(params, "sim", SimConfig)
+
+
+def test_override_of_unknown_key_rejected():
+    with pytest.raises(ParamsError, match="unknown key"):
+        read_params(ROOT / "params.yaml", ["sim.nope=1"])
+
+
+def test_missing_and_malformed_files(tmp_path):
+    with pytest.raises(ParamsError, match="not found"):
+        read_params(tmp_path / "absent.yaml")
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("sim: [unclosed")
+    with pytest.raises(ParamsError, match="not valid YAML"):
+        read_params(bad)
+
+
+def test_unknown_task_lists_known_ones():
+    params = read_params(ROOT / "params.yaml")
+    with pytest.raises(ValueError, match="unknown task 'fold_shirt'.*lift_handle"):
+        get_task("fold_shirt", params)
+    assert "lift_handle" in task_names()
+
+
+def test_params_hash_tracks_content():
+    a = read_params(ROOT / "params.yaml")
+    b = read_params(ROOT / "params.yaml", ["sim.iterations=3"])
+    assert params_hash(a, ["sim"]) != params_hash(b, ["sim"])
+    assert params_hash(a, ["scene"]) == params_hash(b, ["scene"])

@@ -1,0 +1,83 @@
+"""Stage `simulate`: a smoke run on the default params (shortened), and bad input that must fail cleanly."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from stages.simulate import simulate
+from wc.config import ParamsError, read_params
+from wc.data.store import TrajectoryStore
+
+ROOT = Path(__file__).resolve().parents[1]
+SHORT = ["agent.episodes_per_task=1", "tasks.lift_handle.hold_s=0.2", "sim.settle_s=0.2"]
+
+
+def _run(tmp_path: Path, overrides: list[str], out: Path | None = None):
+    out = out or tmp_path / "raw.zarr"
+    return simulate(read_params(ROOT / "params.yaml", SHORT + overrides), out, tmp_path / "simulate.json")
+
+
+def _no_output(tmp_path: Path) -> None:
+    leftovers = [p.name for p in tmp_path.iterdir() if p.name != "blocker"]
+    assert leftovers == [], f"partial output left behind: {leftovers}"
+
+
+@pytest.mark.slow
+def test_smoke_default_params(tmp_path):
+    report = _run(tmp_path, [])
+    store = TrajectoryStore(tmp_path / "raw.zarr")
+    assert store.attrs["schema"] == "worldcontact-trajectories/1"
+    assert store.dt == pytest.approx(0.04)
+    assert store.object_names == ["bag"]
+    assert len(store.link_names) == 16 and store.env_names == ["table"]
+    assert {"right_finger_a", "left_link6", "table"} <= set(store.prescribed)
+    (eid,) = store.episode_ids
+    ep = store.read_episode(eid)
+    frames = len(ep["x"])
+    assert ep["x"].shape == (frames, store.num_vertices, 3) and ep["action"].shape == (frames, 14)
+    assert ep["link_poses"].shape == (frames, 16, 7) and np.isfinite(ep["x"]).all()
+    attrs = store.episode_attrs(eid)
+    assert attrs["task"] == "lift_handle" and attrs["source"] == "simulator"
+    assert attrs["accepted"] == (attrs["first_failure"] is None)
+    written = json.loads((tmp_path / "simulate.json").read_text())
+    assert written == json.loads(json.dumps(report, default=float))
+    assert written["episodes"] == 1 and written["frames"] == frames
+    assert written["solver_steps"] > 0 and written["simulated_s_per_wall_s"] > 0
+    assert written["params_hash"] == store.attrs["params_hash"]
+    assert written["tasks"]["lift_handle"]["cells_visited"] == 1
+
+
+@pytest.mark.parametrize("overrides, message", [
+    (["agent.tasks=[fold_shirt]"], "unknown task 'fold_shirt'"),
+    (["scene.bag.target_vertices=0"], "target_vertices must be positive"),
+    (["sim.substeps=0"], "substeps must be >= 1"),
+])
+def test_bad_params_fail_without_output(tmp_path, overrides, message):
+    with pytest.raises((ParamsError, ValueError), match=message):
+        _run(tmp_path, overrides)
+    _no_output(tmp_path)
+
+
+def test_missing_params_key_fails_without_output(tmp_path):
+    params = read_params(ROOT / "params.yaml", SHORT)
+    del params["sim"]["dt_s"]
+    with pytest.raises(ParamsError, match=r"missing key sim\.dt_s"):
+        simulate(params, tmp_path / "raw.zarr", tmp_path / "simulate.json")
+    _no_output(tmp_path)
+
+
+def test_unwritable_output_fails_without_output(tmp_path):
+    (tmp_path / "blocker").write_text("a file where a directory should be")
+    with pytest.raises(OSError, match="blocker"):
+        _run(tmp_path, [], out=tmp_path / "blocker" / "raw.zarr")
+    _no_output(tmp_path)
+
+
+def test_dvc_pipeline_declares_simulate():
+    listed = subprocess.run([sys.executable, "-m", "dvc", "stage", "list"], cwd=ROOT, capture_output=True, text=True,
+                            check=True).stdout
+    assert "simulate" in listed and "raw.zarr" in listed
