@@ -81,3 +81,19 @@ def test_rigid_sphere_falls_and_rests_rigidly(setup):
     np.testing.assert_allclose(pair(x[-1]), pair(x0), atol=1e-4)
     assert x[-1, :, 2].min() == pytest.approx(scene.table.top_z, abs=0.01)
     assert x[-1, :, 2].mean() == pytest.approx(scene.table.top_z + radius, abs=0.01)
+
+
+def test_held_object_is_a_kinematic_body_posed_by_its_link(setup):
+    params, _, cfg, _ = setup
+    scene = build_scene(load_section(params, "scene", SceneConfig), ["sphere"],
+                        held={"cube": ("right_link6", [0.0, 0.0, 0.2, 0.0, 0.0, 0.0, 1.0])})
+    sim = NewtonSimulator(scene, cfg)
+    x0 = scene.objects["sphere"].vertices + np.array([-0.2, 0.0, 0.1], np.float32)
+    actions = np.repeat(scene.home_action()[None], 3, axis=0)
+    actions[:, 7] = [0.0, 0.05, 0.1]
+    sim.rollout(ObjectState(x0, np.zeros_like(x0)), actions)
+    body = scene.link_names.index("held_cube")
+    newton_pose = sim.state_0.body_q.numpy()[body]
+    expected = scene.link_poses(actions[-1])[body]
+    np.testing.assert_allclose(newton_pose[:3], expected[:3], atol=1e-5)
+    assert abs(float(np.dot(newton_pose[3:], expected[3:]))) == pytest.approx(1.0, abs=1e-5)

@@ -19,6 +19,7 @@ from wc.scene.piper import ARM_BODY_NAMES, arm_poses_from_action
 from wc.scene.rigid import make_cube, make_sphere
 from wc.scene.robot_geometry import LinkShape, link_surface_samples, piper_link_shapes
 from wc.scene.table import TableSpec, table_env_samples
+from wc.sim.kinematic import quat_multiply, quat_rotate
 
 OBJECT_KINDS = {"bag": "cloth", "sphere": "rigid", "cube": "rigid"}
 
@@ -34,6 +35,15 @@ class SampleSet:
     tag: int
 
 
+@dataclass(frozen=True)
+class HeldObject:
+    """A rigid object held by the robot: prescribed, posed by its link (it is part of B_t, not S_t)."""
+
+    mesh: ObjectMesh
+    link: str  # robot body holding it, e.g. right_link6
+    local_pose: np.ndarray  # (7,) object pose in the link frame
+
+
 @dataclass
 class Scene:
     objects: dict[str, ObjectMesh]  # predicted objects, in the order their vertices are concatenated
@@ -46,6 +56,7 @@ class Scene:
     env_names: tuple[str, ...] = ("table",)
     cameras: dict[str, CameraConfig] = field(default_factory=dict)
     home_q: tuple[float, ...] = ()
+    held: dict[str, HeldObject] = field(default_factory=dict)  # body name (held_<object>) -> held object
 
     @property
     def object_kinds(self) -> dict[str, str]:
@@ -69,10 +80,15 @@ class Scene:
         return np.array([[*c, 0.0, 0.0, 0.0, 1.0]], np.float32)
 
     def link_poses(self, action: np.ndarray) -> np.ndarray:
-        """World poses (..., L, 7) of the robot bodies for actions (..., 14)."""
+        """World poses (..., L, 7) of the robot bodies, then the held objects, for actions (..., 14)."""
         a = torch.as_tensor(np.asarray(action, np.float32))
-        poses = arm_poses_from_action(a, torch.as_tensor(self.left_base), torch.as_tensor(self.right_base))
-        return poses.numpy().astype(np.float32)
+        poses = arm_poses_from_action(a, torch.as_tensor(self.left_base), torch.as_tensor(self.right_base)).numpy()
+        held = []
+        for obj in self.held.values():
+            link = poses[..., self.link_names.index(obj.link), :]
+            pos = link[..., :3] + quat_rotate(link[..., 3:], np.broadcast_to(obj.local_pose[:3], link[..., :3].shape))
+            held.append(np.concatenate([pos, quat_multiply(link[..., 3:], obj.local_pose[3:])], axis=-1)[..., None, :])
+        return np.concatenate([poses, *held], axis=-2).astype(np.float32)
 
     def home_action(self, left_opening_m: float = 0.0, right_opening_m: float = 0.0) -> np.ndarray:
         """(14,) action holding both arms at the home posture."""
@@ -100,8 +116,10 @@ def build_objects(cfg: SceneConfig, names: Sequence[str]) -> dict[str, ObjectMes
     return {name: makers[name]() for name in makers if name in names}
 
 
-def build_scene(cfg: SceneConfig, object_names: Sequence[str] = ("bag",)) -> Scene:
-    """Assemble the scene with only the predicted objects a task needs."""
+def build_scene(cfg: SceneConfig, object_names: Sequence[str] = ("bag",),
+                held: dict[str, tuple[str, Sequence[float]]] | None = None) -> Scene:
+    """Assemble the scene with only the predicted objects a task needs, plus objects the robot holds
+    (`held`: object name -> (link, local pose (7,))), whose surface vertices become controllable samples."""
     robot = cfg.robot
     samples = []
     local = link_surface_samples(robot.sample_spacing_m, robot.sampled_links)
@@ -110,6 +128,14 @@ def build_scene(cfg: SceneConfig, object_names: Sequence[str] = ("bag",)) -> Sce
         for link, (points, normals) in local.items():
             samples.append(SampleSet(f"{side}_{link}", f"{side}_{link}", points, normals,
                                      base_tag + link_index[f"left_{link}"]))
+    held_objects = {}
+    for name, (link, local_pose) in (held or {}).items():
+        if link not in ARM_BODY_NAMES:
+            raise ValueError(f"held {name!r}: unknown link {link!r}; known: {list(ARM_BODY_NAMES)}")
+        mesh = build_objects(cfg, [name])[name]
+        held_objects[f"held_{name}"] = HeldObject(mesh, link, np.asarray(local_pose, np.float32))
+        normals = mesh.to_trimesh().vertex_normals.astype(np.float32)
+        samples.append(SampleSet(f"held_{name}", f"held_{name}", mesh.vertices, normals, mesh.tag))
     table = cfg.table
     spec = TableSpec(np.asarray(table.center_m, np.float32), np.asarray(table.half_extents_m, np.float32))
     points, normals = table_env_samples(spec, np.asarray(table.sample_region_center_m, np.float32),
@@ -120,9 +146,10 @@ def build_scene(cfg: SceneConfig, object_names: Sequence[str] = ("bag",)) -> Sce
         table=table,
         left_base=yaw_pose(*robot.left_base_xyz_yaw_deg),
         right_base=yaw_pose(*robot.right_base_xyz_yaw_deg),
-        link_names=tuple(ARM_BODY_NAMES),
+        link_names=tuple(ARM_BODY_NAMES) + tuple(held_objects),
         link_shapes=piper_link_shapes(),
         samples=samples,
         cameras=dict(cfg.cameras),
         home_q=tuple(robot.home_q),
+        held=held_objects,
     )

@@ -68,7 +68,7 @@ class NewtonSimulator:
         self.solver = newton.solvers.SolverVBD(
             self.model,
             iterations=cfg.iterations,
-            particle_enable_self_contact=cfg.self_contact,
+            particle_enable_self_contact=cfg.self_contact and self.particles_per_world > 0,
             particle_self_contact_margin=cfg.self_contact_margin_m,
             particle_self_contact_gap=cfg.self_contact_gap_m,
         )
@@ -105,6 +105,10 @@ class NewtonSimulator:
         robot_cfg = newton.ModelBuilder.ShapeConfig(mu=cfg.robot_friction, density=0.0)
         for name in scene.link_names:
             body = b.add_body(xform=wp.transform_identity(), mass=0.0, is_kinematic=True, label=name)
+            if name in scene.held:  # a held object: kinematic too, its own surface as collision geometry
+                mesh = scene.held[name].mesh
+                b.add_shape_mesh(body, mesh=newton.Mesh(mesh.vertices, mesh.faces.reshape(-1)), cfg=robot_cfg)
+                continue
             for shape in shapes_by_link.get(name.split("_", 1)[1], []):
                 xform = wp.transform(shape.local_pos, shape.local_quat_xyzw)
                 if shape.kind == "box":
