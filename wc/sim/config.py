@@ -37,6 +37,7 @@ class SimConfig:
     dt_s: float  # solver step (paper: 0.002 s)
     substeps: int  # solver steps per recorded frame (paper: 20 -> frame dt 0.04 s)
     iterations: int  # VBD iterations per step
+    friction_epsilon: float  # VBD friction smoothing; below it static friction turns viscous (grip creep)
     self_contact: bool
     self_contact_margin_m: float
     self_contact_gap_m: float

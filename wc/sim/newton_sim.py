@@ -68,6 +68,7 @@ class NewtonSimulator:
         self.solver = newton.solvers.SolverVBD(
             self.model,
             iterations=cfg.iterations,
+            friction_epsilon=cfg.friction_epsilon,
             particle_enable_self_contact=cfg.self_contact and self.particles_per_world > 0,
             particle_self_contact_margin=cfg.self_contact_margin_m,
             particle_self_contact_gap=cfg.self_contact_gap_m,
