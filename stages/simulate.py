@@ -10,8 +10,10 @@ import time
 from pathlib import Path
 from typing import Any
 
+import torch
 from tqdm import tqdm
 
+from wc.agent.lift_plot import write_lift_curves
 from wc.agent.planner import CoveragePlanner
 from wc.agent.runner import AgentConfig, run_episodes
 from wc.config import load_section, params_hash, read_params
@@ -28,7 +30,8 @@ SECTIONS = ["scene", "sim", "tasks", "agent"]
 
 def simulate(params: dict[str, Any], out: str | Path = "data/source/raw.zarr",
              report: str | Path = "reports/simulate.json") -> dict[str, Any]:
-    """Run every configured task's episodes; write the raw store and the report. Returns the report."""
+    """Run every configured task's episodes; write the raw store, the report and lift curves beside
+    the report (simulate_lift.csv / .png). Returns the report."""
     scene_cfg = load_section(params, "scene", SceneConfig)
     sim_cfg = load_section(params, "sim", SimConfig)
     agent_cfg = load_section(params, "agent", AgentConfig)
@@ -39,6 +42,7 @@ def simulate(params: dict[str, Any], out: str | Path = "data/source/raw.zarr",
     planner = CoveragePlanner()
     per_task: dict[str, dict[str, Any]] = {}
     frames = steps = 0
+    curves = {}
     started = time.perf_counter()
     with TrajectoryWriter(out, dt=sim_cfg.frame_dt_s, substeps=sim_cfg.substeps, params_hash=phash,
                           created_by="stages.simulate", object_order=list(store_scene.objects),
@@ -62,11 +66,13 @@ def simulate(params: dict[str, Any], out: str | Path = "data/source/raw.zarr",
                         failures[record.first_failure] = failures.get(record.first_failure, 0) + 1
                     if record.x is None:  # never simulated: nothing to store
                         continue
-                    writer.add_episode(record.x, record.v, record.action, record.link_poses, record.env_poses,
+                    eid = writer.add_episode(record.x, record.v, record.action, record.link_poses, record.env_poses,
                                        task=spec.task, seed=spec.seed, cell=spec.cell, speed=spec.speed,
                                        amplitude=spec.amplitude, split=None, accepted=record.first_failure is None,
                                        first_failure=record.first_failure, source="simulator")
                     frames += len(record.x)
+                    lowest = record.x[..., 2].min(axis=1) - scene.table.top_z
+                    curves[eid] = (lowest, f"{task.name} cell {spec.cell}: {record.first_failure or 'accepted'}")
                     accepted += record.first_failure is None
                     bar.set_postfix(accepted=accepted)
             steps += sim.solver_steps
@@ -86,6 +92,9 @@ def simulate(params: dict[str, Any], out: str | Path = "data/source/raw.zarr",
         "bag_vertices": len(store_scene.objects["bag"].vertices) if "bag" in store_scene.objects else 0,
         "environment": environment_info(NewtonSimulator.device_name(sim_cfg)),
     }
+    report = Path(report)
+    write_lift_curves(curves, sim_cfg.frame_dt_s, report.with_name("simulate_lift.csv"),
+                      report.with_name("simulate_lift.png"))
     write_json_atomic(report, result)
     return result
 
@@ -97,6 +106,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--out", default="data/source/raw.zarr")
     parser.add_argument("--report", default="reports/simulate.json")
     args = parser.parse_args(argv)
+    torch.set_num_threads(1)  # tiny IK tensors: one thread is fastest and immune to a busy second core
     result = simulate(read_params(args.params, args.overrides), args.out, args.report)
     print(f"simulate: {result['accepted']}/{result['episodes']} episodes accepted, {result['frames']} frames, "
           f"{result['simulated_s_per_wall_s']:.3f} simulated s per wall s")

@@ -50,7 +50,6 @@ class NewtonSimulator:
     """Advances the object state of `worlds` episodes of one scene under prescribed robot motion."""
 
     def __init__(self, scene: Scene, cfg: SimConfig, worlds: int | None = None):
-        wp.config.quiet = True
         self.scene, self.cfg = scene, cfg
         self.worlds = worlds or cfg.worlds
         self.device = resolve_device(cfg.device)

@@ -38,6 +38,8 @@ class LiftHandleConfig:
     close_s: float
     hold_s: float
     ik_iterations: int
+    ik_tolerance_m: float  # a plan whose IK misses by more is infeasible (a jerky arm would shake the grip)
+    ik_tolerance_rad: float
     success_lift_m: float  # accepted if the bag's lowest vertex ends this far above the table
 
     def validate(self) -> None:
@@ -135,13 +137,14 @@ class LiftHandle:
 
     def _solve(self, scene: Scene, points: np.ndarray, rot: np.ndarray, q_init: np.ndarray) -> np.ndarray:
         """Right-arm joints (K, 6) reaching TCP points (K, 3) with rotations (3, 3) or (K, 3, 3), warm-started."""
-        q, pos_err, _ = solve_tool_ik(
+        q, pos_err, rot_err = solve_tool_ik(
             torch.as_tensor(points, dtype=torch.float32),
             torch.as_tensor(np.broadcast_to(rot, (len(points), 3, 3)).copy(), dtype=torch.float32),
             torch.as_tensor(q_init, dtype=torch.float32), torch.as_tensor(scene.right_base),
             iterations=self.cfg.ik_iterations)
-        if float(pos_err.max()) > 0.01:
-            raise InfeasibleEpisode(f"lift_handle: target out of the right arm's reach (IK error {float(pos_err.max()):.3f} m)")
+        if float(pos_err.max()) > self.cfg.ik_tolerance_m or float(rot_err.max()) > self.cfg.ik_tolerance_rad:
+            raise InfeasibleEpisode(f"lift_handle: target out of the right arm's reach (IK error "
+                                    f"{float(pos_err.max()):.4f} m, {float(rot_err.max()):.3f} rad)")
         return q.numpy()
 
     def _start_q(self, scene: Scene, x: np.ndarray, spec: EpisodeSpec) -> np.ndarray:
