@@ -13,6 +13,7 @@ import torch
 
 from wc.dynamics import ObjectState
 from wc.scene.ik import solve_tool_ik
+from wc.scene.piper import tool_pose
 from wc.scene.scene import Scene
 from wc.sim.kinematic import quat_rotate
 from wc.tasks.base import EpisodeSpec, InfeasibleEpisode, register_task
@@ -171,7 +172,9 @@ class LiftHandle:
         depth, across, _ = self._cell(spec.cell)
         grasp, y, away = grasp_frame(scene, settled.x, depth, across)
         approach = tool_rotation(y, away, cfg.approach_tilt_deg)[:, 2]
-        start_tcp = grasp - cfg.start_height_m * approach  # back along the approach axis
+        # where the tool really is at frame 0 (planned before the bag settled), so frame 1 does not jump
+        start_tcp = tool_pose(torch.as_tensor(start[7:13]), float(start[13]), torch.as_tensor(scene.right_base))
+        start_tcp = start_tcp[:3].numpy().astype(np.float64)
         pre = grasp - cfg.approach_height_m * approach
         lifted = grasp + np.array([0.0, 0.0, spec.amplitude]) - cfg.lift_retract_m * away
         tilt0, tilt1 = cfg.approach_tilt_deg, cfg.lift_tilt_deg

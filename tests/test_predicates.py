@@ -1,0 +1,167 @@
+"""Episode checks: a clean synthetic trajectory passes; each planted fault is caught by its predicate first."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from wc.config import read_params, load_section
+from wc.scene.config import SceneConfig
+from wc.scene.scene import build_scene
+from wc.validate import PREDICATES, ValidateConfig, first_failure
+from wc.validate.predicates import box_signed_distance, finger_pad_boxes
+from wc.validate.self_intersection import crossing_edges, unique_edges
+
+T = 12
+DT = 0.04
+CFG = ValidateConfig(
+    max_speed_m_s=5.0, max_edge_strain=0.5, penetration_tol_m=0.003, self_intersection_every=1,
+    release_opening_m=0.02, adhesion_radius_m=0.01, adhesion_window_s=0.2, adhesion_rise_m=0.02,
+    workspace_min_m=(-0.5, -0.4, -0.02), workspace_max_m=(0.5, 0.4, 0.8), min_visible_fraction=0.9,
+)
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return build_scene(load_section(read_params("params.yaml"), "scene", SceneConfig))
+
+
+@pytest.fixture()
+def clean(scene):
+    """The bag's rest mesh resting on the table, robot at home, for T frames."""
+    rest = scene.objects["bag"].vertices
+    x = np.repeat(rest[None], T, axis=0).copy()
+    action = np.repeat(scene.home_action()[None], T, axis=0)
+    return {"x": x, "v": np.zeros_like(x), "action": action, "link_poses": scene.link_poses(action)}
+
+
+def check(scene, ep, cfg=CFG):
+    return first_failure(scene, ep["x"], ep["v"], ep["action"], ep["link_poses"], cfg, frame_dt_s=DT)
+
+
+def bag_vertex(scene, key):
+    """Index of a bag body vertex chosen by key(vertices) -> scores (argmin)."""
+    return int(np.argmin(key(scene.objects["bag"].vertices)))
+
+
+def test_clean_trajectory_passes(scene, clean):
+    assert check(scene, clean) is None
+    assert list(PREDICATES) == ["non_finite", "blow_up", "penetration", "self_intersection", "adhesion",
+                                "workspace", "out_of_view"]
+
+
+def test_nan(scene, clean):
+    clean["x"][5, 17, 1] = np.nan
+    assert check(scene, clean) == ("non_finite", 5)
+
+
+def test_fast_vertex(scene, clean):
+    clean["v"][6, 3] = (0.0, 0.0, 10.0)
+    assert check(scene, clean) == ("blow_up", 6)
+
+
+def test_over_stretched_edge(scene, clean):
+    top = bag_vertex(scene, lambda p: -p[:, 2])
+    clean["x"][4:, top, 2] += 0.05
+    assert check(scene, clean) == ("blow_up", 4)
+
+
+def test_bag_pushed_into_table(scene, clean):
+    clean["x"][7:, :, 2] -= 0.02  # rigid shift: the bottom vertices sit 2 cm inside the table
+    assert check(scene, clean) == ("penetration", 7)
+
+
+def test_shallow_table_contact_within_tolerance(scene, clean):
+    clean["x"][7:, :, 2] -= 0.005
+    assert check(scene, clean, dataclasses.replace(CFG, penetration_tol_m=0.01)) is None
+    assert check(scene, clean) == ("penetration", 7)  # 5 mm is beyond the 3 mm default of these tests
+
+
+def test_vertex_inside_finger_box(scene, clean):
+    top = bag_vertex(scene, lambda p: -p[:, 2])
+    k = scene.link_names.index("right_finger_a")
+    centre, quat, _ = finger_pad_boxes(scene, clean["link_poses"], "right")
+    clean["link_poses"][3:, k, :3] += clean["x"][0, top] - centre[0, 0]  # move the pad onto the vertex
+    # the pad is 1 cm thick: a vertex at its centre is 5 mm deep, so the tolerance must stay below 5 mm
+    assert check(scene, clean) == ("penetration", 3)
+
+
+def test_box_signed_distance_is_exact():
+    q = np.array([0.0, 0.0, np.sin(np.pi / 8), np.cos(np.pi / 8)])  # 45 deg about z
+    half = np.array([0.1, 0.2, 0.3])
+    pts = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 0.5], [0.0, 0.0, 0.25]])
+    d = box_signed_distance(pts, np.zeros(3), q, half)
+    assert np.allclose(d, [-0.1, 0.2, -0.05])
+    corner = np.array([0.1, 0.2, 0.3]) + np.array([0.03, 0.04, 0.0])  # box frame, 5 cm off a vertical edge
+    c, s = np.cos(np.pi / 4), np.sin(np.pi / 4)
+    world = np.array([c * corner[0] - s * corner[1], s * corner[0] + c * corner[1], 0.3])
+    assert np.isclose(box_signed_distance(world, np.zeros(3), q, half), 0.05)
+
+
+def test_crossing_triangles(scene, clean):
+    bag = scene.objects["bag"]
+    body = bag.groups["body"]
+    p = bag.vertices
+    # a front-panel vertex at mid height, pushed through the back panel
+    score = np.abs(p[body, 0]) + np.abs(p[body, 2] - 0.06) + 10 * (p[body, 1] - p[:, 1].min())
+    i = int(body[np.argmin(score)])
+    clean["x"][8:, i, 1] = p[:, 1].max() + 0.02
+    assert crossing_edges(clean["x"][8], bag.faces, unique_edges(bag.faces)).max() >= 0
+    loose = dataclasses.replace(CFG, max_edge_strain=100.0)  # the push stretches its edges; judge crossings only
+    assert check(scene, clean, loose) == ("self_intersection", 8)
+    sparse = dataclasses.replace(loose, self_intersection_every=3)  # checked frames 0, 3, 6, 9
+    assert check(scene, clean, sparse) == ("self_intersection", 9)
+
+
+def _grip_handle_then_release(scene, clean):
+    """Right pads 3 mm above the bag's top vertex, closed until frame 3, open from frame 3 on, and
+    rising 1 cm per frame from then on."""
+    top = bag_vertex(scene, lambda p: -p[:, 2])
+    clean["action"][3:, 13] = 0.08
+    centre, _, _ = finger_pad_boxes(scene, clean["link_poses"], "right")
+    for f in ("finger_a", "finger_b"):
+        k = scene.link_names.index(f"right_{f}")
+        clean["link_poses"][:, k, 3:] = (0.0, 0.0, 0.0, 1.0)  # pads axis aligned: outward along world z
+        j = 0 if f == "finger_a" else 1
+        local = np.array([0.0, 0.025 if j == 0 else -0.025, 0.005])
+        clean["link_poses"][:, k, :3] = clean["x"][0, top] + (0.0, 0.0, 0.008) - local
+    rise = np.clip(np.arange(T) - 3, 0, None) * 0.01
+    for f in ("finger_a", "finger_b"):
+        clean["link_poses"][:, scene.link_names.index(f"right_{f}"), 2] += rise
+    return rise
+
+
+def test_bag_rising_with_open_gripper(scene, clean):
+    rise = _grip_handle_then_release(scene, clean)
+    clean["x"] += np.stack([np.zeros(T), np.zeros(T), rise], axis=1)[:, None, :].astype(np.float32)
+    assert check(scene, clean) == ("adhesion", 3 + 5)  # window 0.2 s = 5 frames after the release
+
+
+def test_bag_left_behind_by_open_gripper_passes(scene, clean):
+    _grip_handle_then_release(scene, clean)
+    assert check(scene, clean) is None
+
+
+def test_bag_out_of_workspace(scene, clean):
+    clean["x"][9:, :, 1] += 0.45  # sideways, away from the arms: past the 0.4 m workspace edge
+    assert check(scene, clean) == ("workspace", 9)
+
+
+def test_bag_out_of_view(scene, clean):
+    clean["x"][10:, :, 0] += 0.8  # still on the table plane but beside the top camera's field of view
+    wide = dataclasses.replace(CFG, workspace_min_m=(-2.0, -2.0, -0.02), workspace_max_m=(2.0, 2.0, 2.0))
+    assert check(scene, clean, wide) == ("out_of_view", 10)
+
+
+@pytest.mark.parametrize("field,value", [
+    ("max_speed_m_s", 0.0), ("max_edge_strain", -0.1), ("penetration_tol_m", 0.0),
+    ("self_intersection_every", 0), ("release_opening_m", -1.0), ("adhesion_radius_m", 0.0),
+    ("adhesion_window_s", 0.0), ("adhesion_rise_m", -0.01), ("min_visible_fraction", 0.0),
+    ("min_visible_fraction", 1.5), ("workspace_max_m", (-0.5, 0.4, 0.8)),
+])
+def test_config_rejects_bad_tolerances(field, value):
+    CFG.validate()
+    with pytest.raises(ValueError, match=field):
+        dataclasses.replace(CFG, **{field: value}).validate()

@@ -1,0 +1,247 @@
+"""Named episode checks: each returns the first failing frame index, or None when the episode passes.
+
+Every predicate is a pure function `(scene, episode, cfg) -> int | None`; `first_failure` runs them
+in the fixed order of PREDICATES (non-finite first, so later checks may assume finite arrays) and
+reports the first predicate that fails. Cloth checks (penetration, self-intersection, adhesion,
+workspace, view) look at the cloth objects' vertices; non_finite and blow_up at all predicted vertices.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from wc.scene.cameras import camera_pose, intrinsics
+from wc.scene.piper import PAD_CENTRE_IN_FINGER_M, PAD_HALF_EXTENTS_M
+from wc.scene.scene import Scene
+from wc.sim.kinematic import quat_multiply, quat_rotate
+from wc.validate.config import ValidateConfig
+from wc.validate.self_intersection import crossing_edges, unique_edges
+
+OPENING_COLUMNS = {"left": 6, "right": 13}  # action = [q_L (6), d_L, q_R (6), d_R]
+CHUNK_ELEMENTS = 4_000_000  # frames x vertices x boxes evaluated at once by the box distances
+
+
+@dataclass(frozen=True)
+class Episode:
+    """One episode's arrays: x, v (T, N, 3) m, m/s; action (T, 14); link_poses (T, L, 7); frame dt s."""
+
+    x: np.ndarray
+    v: np.ndarray
+    action: np.ndarray
+    link_poses: np.ndarray
+    frame_dt_s: float
+
+
+def _first(bad: np.ndarray) -> int | None:
+    """First True frame of a (T,) mask."""
+    hits = np.flatnonzero(bad)
+    return int(hits[0]) if len(hits) else None
+
+
+def cloth_rows(scene: Scene) -> np.ndarray:
+    """Rows of x that belong to cloth objects (the bag)."""
+    slices = scene.vertex_slices()
+    rows = [np.arange(slices[n].start, slices[n].stop) for n, kind in scene.object_kinds.items() if kind == "cloth"]
+    return np.concatenate(rows) if rows else np.zeros(0, np.int64)
+
+
+def box_signed_distance(points: np.ndarray, centre: np.ndarray, quat: np.ndarray, half: np.ndarray) -> np.ndarray:
+    """Exact signed distance [m] (negative inside) of points (..., 3) to oriented boxes broadcasting with them:
+    centre (..., 3), quat xyzw (..., 4), half extents (..., 3)."""
+    inv = quat * np.array([-1.0, -1.0, -1.0, 1.0], quat.dtype)
+    q = np.abs(quat_rotate(inv, points - centre)) - half
+    outside = np.linalg.norm(np.maximum(q, 0.0), axis=-1)
+    return outside + np.minimum(q.max(axis=-1), 0.0)
+
+
+def robot_boxes(scene: Scene, link_poses: np.ndarray, links: tuple[str, ...] | None = None
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """World boxes of the robot's link shapes: centres (T, B, 3), quats (T, B, 4), half extents (B, 3).
+
+    links: prefixed body names to include (default: every arm body); capsules are not handled.
+    """
+    shapes: dict[str, list] = {}
+    for s in scene.link_shapes:
+        if s.kind == "box":
+            shapes.setdefault(s.link, []).append(s)
+    cols, pos, quat, half = [], [], [], []
+    for k, name in enumerate(scene.link_names):
+        side, _, link = name.partition("_")
+        if side not in OPENING_COLUMNS or (links is not None and name not in links):
+            continue
+        for s in shapes.get(link, []):
+            cols.append(k)
+            pos.append(s.local_pos)
+            quat.append(s.local_quat_xyzw)
+            half.append(s.size)
+    body = np.asarray(link_poses, np.float64)[:, cols]
+    centre = body[..., :3] + quat_rotate(body[..., 3:], np.asarray(pos, np.float64)[None])
+    q = quat_multiply(body[..., 3:], np.broadcast_to(np.asarray(quat, np.float64), body[..., 3:].shape))
+    return centre, q, np.asarray(half, np.float64).reshape(-1, 3)
+
+
+def _min_box_distance(x: np.ndarray, centre: np.ndarray, quat: np.ndarray, half: np.ndarray) -> np.ndarray:
+    """(T, N) signed distance of points x (T, N, 3) to the nearest of the boxes (T, B, ...); +inf where no box
+    is near. Broad phase: only (frame, box) pairs whose bounding sphere reaches the points' bounding box."""
+    T, N = x.shape[:2]
+    out = np.full((T, N), np.inf)
+    if len(half) == 0 or N == 0:
+        return out
+    lo, hi = x.min(axis=1), x.max(axis=1)  # (T, 3)
+    gap = np.linalg.norm(np.maximum(np.maximum(lo[:, None] - centre, centre - hi[:, None]), 0.0), axis=-1)
+    pairs = np.argwhere(gap <= np.linalg.norm(half, axis=-1)[None])  # (P, 2) frame, box
+    step = max(1, CHUNK_ELEMENTS // N)
+    for p0 in range(0, len(pairs), step):
+        t, b = pairs[p0:p0 + step].T
+        d = box_signed_distance(x[t], centre[t, b][:, None], quat[t, b][:, None], half[b][:, None])
+        np.minimum.at(out, t, d)
+    return out
+
+
+def non_finite(scene: Scene, ep: Episode, cfg: ValidateConfig) -> int | None:
+    """First frame with a NaN or Inf in x or v."""
+    bad = ~(np.isfinite(ep.x).all(axis=(1, 2)) & np.isfinite(ep.v).all(axis=(1, 2)))
+    return _first(bad)
+
+
+def blow_up(scene: Scene, ep: Episode, cfg: ValidateConfig) -> int | None:
+    """First frame with a vertex faster than max_speed_m_s or a rest edge strained beyond max_edge_strain."""
+    bad = (np.linalg.norm(ep.v, axis=-1) > cfg.max_speed_m_s).any(axis=1)
+    slices = scene.vertex_slices()
+    for name, mesh in scene.objects.items():
+        edges = unique_edges(mesh.faces)
+        rest = np.linalg.norm(mesh.vertices[edges[:, 0]] - mesh.vertices[edges[:, 1]], axis=-1)
+        x = ep.x[:, slices[name]]
+        length = np.linalg.norm(x[:, edges[:, 0]] - x[:, edges[:, 1]], axis=-1)
+        bad |= (length / np.maximum(rest, 1e-12) - 1.0 > cfg.max_edge_strain).any(axis=1)
+    return _first(bad)
+
+
+def penetration(scene: Scene, ep: Episode, cfg: ValidateConfig) -> int | None:
+    """First frame with a cloth vertex deeper than penetration_tol_m inside the table or a robot link box."""
+    x = ep.x[:, cloth_rows(scene)].astype(np.float64)
+    T = len(x)
+    table_c = np.asarray(scene.table.center_m, np.float64)
+    table_q = np.array([0.0, 0.0, 0.0, 1.0])
+    depth_table = -box_signed_distance(x, table_c, table_q, np.asarray(scene.table.half_extents_m, np.float64))
+    centre, quat, half = robot_boxes(scene, ep.link_poses)
+    depth_robot = -_min_box_distance(x, centre, quat, half)
+    bad = np.maximum(depth_table, depth_robot) > cfg.penetration_tol_m
+    return _first(bad.any(axis=1)) if T else None
+
+
+def self_intersection(scene: Scene, ep: Episode, cfg: ValidateConfig) -> int | None:
+    """First checked frame (every self_intersection_every-th) where a cloth mesh edge crosses a
+    non-adjacent triangle of the same mesh (warp BVH ray casts, see self_intersection.py)."""
+    slices = scene.vertex_slices()
+    cloth = [(slices[n], m.faces, unique_edges(m.faces)) for n, m in scene.objects.items()
+             if scene.object_kinds[n] == "cloth"]
+    for t in range(0, len(ep.x), cfg.self_intersection_every):
+        for sl, faces, edges in cloth:
+            if (crossing_edges(ep.x[t, sl], faces, edges) >= 0).any():
+                return t
+    return None
+
+
+def finger_pad_boxes(scene: Scene, link_poses: np.ndarray, side: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """World pad boxes of one arm's two fingers: centres (T, 2, 3), quats (T, 2, 4), half extents (2, 3)."""
+    cols = [scene.link_names.index(f"{side}_{f}") for f in ("finger_a", "finger_b")]
+    body = np.asarray(link_poses, np.float64)[:, cols]
+    local = np.array([PAD_CENTRE_IN_FINGER_M["finger_a"], PAD_CENTRE_IN_FINGER_M["finger_b"]], np.float64)
+    centre = body[..., :3] + quat_rotate(body[..., 3:], local[None])
+    return centre, body[..., 3:], np.tile(np.asarray(PAD_HALF_EXTENTS_M, np.float64), (2, 1))
+
+
+def adhesion(scene: Scene, ep: Episode, cfg: ValidateConfig) -> int | None:
+    """Spurious gripper-bag adhesion after a release.
+
+    A release is a frame r where an arm's opening (action d_L / d_R) rises past release_opening_m.
+    The cloth vertices within adhesion_radius_m of that arm's pad boxes at r are watched; at
+    w = r + round(adhesion_window_s / frame_dt_s) the episode fails (at frame w) if the pads rose more
+    than adhesion_rise_m and a watched vertex rose more than adhesion_rise_m too while staying
+    within adhesion_radius_m of the pads, i.e. it keeps following the open fingers. Releases whose
+    window ends after the last frame are not judged.
+    """
+    x = ep.x[:, cloth_rows(scene)].astype(np.float64)
+    window = max(1, int(round(cfg.adhesion_window_s / ep.frame_dt_s)))
+    failures = []
+    for side, col in OPENING_COLUMNS.items():
+        opening = ep.action[:, col]
+        releases = np.flatnonzero((opening[1:] > cfg.release_opening_m) & (opening[:-1] <= cfg.release_opening_m)) + 1
+        centre, quat, half = finger_pad_boxes(scene, ep.link_poses, side)
+        for r in releases:
+            w = r + window
+            if w >= len(x):
+                continue
+            near_r = _min_box_distance(x[[r]], centre[[r]], quat[[r]], half)[0] < cfg.adhesion_radius_m
+            if not near_r.any():
+                continue
+            fingers_rise = (centre[w, :, 2] - centre[r, :, 2]).mean()
+            near_w = _min_box_distance(x[[w]], centre[[w]], quat[[w]], half)[0] < cfg.adhesion_radius_m
+            rose = x[w, :, 2] - x[r, :, 2] > cfg.adhesion_rise_m
+            if fingers_rise > cfg.adhesion_rise_m and (near_r & near_w & rose).any():
+                failures.append(int(w))
+    return min(failures) if failures else None
+
+
+def workspace(scene: Scene, ep: Episode, cfg: ValidateConfig) -> int | None:
+    """First frame with a cloth vertex outside the axis-aligned workspace box."""
+    x = ep.x[:, cloth_rows(scene)]
+    out = (x < np.asarray(cfg.workspace_min_m)) | (x > np.asarray(cfg.workspace_max_m))
+    return _first(out.any(axis=(1, 2)))
+
+
+def visible_fraction(scene: Scene, x: np.ndarray, link_poses: np.ndarray, camera: str) -> np.ndarray:
+    """(T,) fraction of points x (T, N, 3) that project inside the camera's image (in front of it)."""
+    cam = scene.cameras[camera]
+    K = intrinsics(cam)
+    frac = np.zeros(len(x))
+    for t in range(len(x)):
+        eye, rot = camera_pose(cam, scene.link_names, link_poses[t])
+        p = (np.asarray(x[t], np.float64) - eye) @ rot  # camera frame, OpenGL: looks down -z, y up
+        depth = -p[:, 2]
+        front = depth > 1e-9
+        safe = np.where(front, depth, 1.0)
+        u = K[0, 0] * p[:, 0] / safe + K[0, 2]
+        v = K[1, 2] - K[1, 1] * p[:, 1] / safe  # image rows grow downwards
+        inside = front & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+        frac[t] = inside.mean() if len(inside) else 1.0
+    return frac
+
+
+def out_of_view(scene: Scene, ep: Episode, cfg: ValidateConfig) -> int | None:
+    """First frame where less than min_visible_fraction of the cloth vertices are in the view camera's image."""
+    frac = visible_fraction(scene, ep.x[:, cloth_rows(scene)], ep.link_poses, cfg.view_camera)
+    return _first(frac < cfg.min_visible_fraction)
+
+
+Predicate = Callable[[Scene, Episode, ValidateConfig], "int | None"]
+PREDICATES: dict[str, Predicate] = {
+    "non_finite": non_finite,
+    "blow_up": blow_up,
+    "penetration": penetration,
+    "self_intersection": self_intersection,
+    "adhesion": adhesion,
+    "workspace": workspace,
+    "out_of_view": out_of_view,
+}
+
+
+def first_failure(scene: Scene, x: np.ndarray, v: np.ndarray, action: np.ndarray, link_poses: np.ndarray,
+                  config: ValidateConfig, *, frame_dt_s: float) -> tuple[str, int] | None:
+    """(predicate name, first failing frame) of the first predicate in PREDICATES order that fails, or None.
+
+    x, v (T, N_total, 3); action (T, 14); link_poses (T, L, 7) as in the trajectory store; frame_dt_s
+    is the recorded frame interval (the store's dt), used by the adhesion window.
+    """
+    if not frame_dt_s > 0:
+        raise ValueError(f"frame_dt_s must be positive, got {frame_dt_s}")
+    ep = Episode(np.asarray(x), np.asarray(v), np.asarray(action), np.asarray(link_poses), float(frame_dt_s))
+    for name, predicate in PREDICATES.items():
+        frame = predicate(scene, ep, config)
+        if frame is not None:
+            return name, frame
+    return None
