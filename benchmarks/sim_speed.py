@@ -29,7 +29,7 @@ from tqdm import tqdm
 
 from wc.agent.planner import CoveragePlanner
 from wc.agent.runner import episode_seed, pad_to_length
-from wc.config import load_section, read_params
+from wc.config import add_params_arguments, load_section, read_params
 from wc.dynamics import ObjectState
 from wc.reports import environment_info, write_json_atomic
 from wc.scene.config import SceneConfig
@@ -146,8 +146,7 @@ def markdown(report: dict[str, Any]) -> str:
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--params", default="params.yaml")
-    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
+    add_params_arguments(parser)
     parser.add_argument("--device", default=None, help="cpu | cuda | cuda:N | auto (default: params' sim.device)")
     parser.add_argument("--vertices", type=_ints, default=None,
                         help=f"bag target_vertices list (default: params' and {PAPER_VERTICES}; --quick: params')")

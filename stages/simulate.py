@@ -16,7 +16,7 @@ from tqdm import tqdm
 from wc.agent.lift_plot import write_lift_curves
 from wc.agent.planner import CoveragePlanner
 from wc.agent.runner import AgentConfig, run_episodes
-from wc.config import load_section, params_hash, read_params
+from wc.config import add_params_arguments, load_section, params_hash, read_params
 from wc.data.store import TrajectoryWriter
 from wc.reports import environment_info, write_json_atomic
 from wc.scene.config import SceneConfig
@@ -101,8 +101,7 @@ def simulate(params: dict[str, Any], out: str | Path = "data/source/raw.zarr",
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--params", default="params.yaml")
-    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
+    add_params_arguments(parser)
     parser.add_argument("--out", default="data/source/raw.zarr")
     parser.add_argument("--report", default="reports/simulate.json")
     args = parser.parse_args(argv)

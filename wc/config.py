@@ -6,6 +6,7 @@ missing key or a value of the wrong type fails with one message naming the key p
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import hashlib
 import json
@@ -21,6 +22,13 @@ T = TypeVar("T")
 
 class ParamsError(ValueError):
     """A params file is malformed: names the file and the dotted key."""
+
+
+def add_params_arguments(parser: argparse.ArgumentParser) -> None:
+    """The `--params FILE` and repeated `--set key.sub=value` options every stage and benchmark takes."""
+    parser.add_argument("--params", default="params.yaml", help="params file (default: params.yaml)")
+    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                        help="override one param, e.g. --set sim.iterations=5 (repeatable)")
 
 
 def read_params(path: str | Path, overrides: list[str] | None = None) -> dict[str, Any]:
