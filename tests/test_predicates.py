@@ -11,7 +11,9 @@ from wc.config import read_params, load_section
 from wc.scene.config import SceneConfig
 from wc.scene.scene import build_scene
 from wc.validate import PREDICATES, ValidateConfig, first_failure
-from wc.validate.predicates import box_signed_distance, finger_pad_boxes
+from wc.validate.predicates import (
+    box_signed_distance, convex_depth, convex_planes, finger_pad_boxes, quat_matrices, rigid_frames,
+)
 from wc.validate.self_intersection import crossing_edges, unique_edges
 
 T = 12
@@ -20,6 +22,7 @@ CFG = ValidateConfig(
     max_speed_m_s=5.0, max_edge_strain=0.5, penetration_tol_m=0.003, self_intersection_every=1,
     release_opening_m=0.02, adhesion_radius_m=0.01, adhesion_window_s=0.2, adhesion_rise_m=0.02,
     workspace_min_m=(-0.5, -0.4, -0.02), workspace_max_m=(0.5, 0.4, 0.8), min_visible_fraction=0.9,
+    val_per_task=0, test_per_task=1, split_seed=0,
 )
 
 
@@ -160,8 +163,138 @@ def test_bag_out_of_view(scene, clean):
     ("self_intersection_every", 0), ("release_opening_m", -1.0), ("adhesion_radius_m", 0.0),
     ("adhesion_window_s", 0.0), ("adhesion_rise_m", -0.01), ("min_visible_fraction", 0.0),
     ("min_visible_fraction", 1.5), ("workspace_max_m", (-0.5, 0.4, 0.8)),
+    ("val_per_task", -1), ("test_per_task", -2), ("split_seed", -1),
 ])
 def test_config_rejects_bad_tolerances(field, value):
     CFG.validate()
     with pytest.raises(ValueError, match=field):
         dataclasses.replace(CFG, **{field: value}).validate()
+
+
+# -- rigid objects: predicted (fitted to their rows of x) and held (posed by link_poses) ---------------
+
+HELD_POSE = (0.0, 0.0, 0.1, 0.0, 0.0, 0.0, 1.0)  # cube 10 cm out along right_link6's z, well above the bag
+
+
+def yaw_matrix(deg):
+    c, s = np.cos(np.deg2rad(deg)), np.sin(np.deg2rad(deg))
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+@pytest.fixture(scope="module")
+def scene_cfg():
+    return load_section(read_params("params.yaml"), "scene", SceneConfig)
+
+
+def with_rigid(scene, ep, name, centre, rot=np.eye(3), frames=slice(None)):
+    """Episode `ep` (bag rows first) with the rigid object's rest mesh appended to x, posed at `centre`
+    (3,) m with rotation `rot` in `frames` (beside the bag, see rigid_rest_centre, elsewhere)."""
+    rest = scene.objects[name].vertices.astype(np.float64)
+    rows = np.repeat((rest + rigid_rest_centre(scene, name))[None], T, axis=0)
+    rows[frames] = rest @ rot.T + centre
+    x = np.concatenate([ep["x"], rows.astype(np.float32)], axis=1)
+    return {**ep, "x": x, "v": np.zeros_like(x)}
+
+
+def rigid_rest_centre(scene, name):
+    """Resting on the table, 2.5 cm to the +x side of the bag (of x = 0 without a bag)."""
+    v = scene.objects[name].vertices
+    bag_side = scene.objects["bag"].vertices[:, 0].max() if "bag" in scene.objects else 0.0
+    return np.array([bag_side + 0.025 - v[:, 0].min(), 0.0, 0.0005 - v[:, 2].min()])
+
+
+def side_vertex(scene):
+    """A bag vertex on its +x side panel at mid height, and the outward direction there."""
+    return bag_vertex(scene, lambda p: -p[:, 0] + np.abs(p[:, 2] - 0.05)), np.array([1.0, 0.0, 0.0])
+
+
+def test_sphere_beside_bag_passes(scene_cfg, clean):
+    scene = build_scene(scene_cfg, ["bag", "sphere"])
+    ep = with_rigid(scene, clean, "sphere", rigid_rest_centre(scene, "sphere"))
+    assert check(scene, ep) is None
+
+
+def test_bag_vertex_inside_predicted_sphere(scene_cfg, clean):
+    scene = build_scene(scene_cfg, ["bag", "sphere"])
+    i, out = side_vertex(scene)
+    r = scene_cfg.sphere.radius_m
+    p = clean["x"][0, i].astype(np.float64)
+    # 1 mm inside: within the 3 mm tolerance (the mesh's faces sit a little inside the true sphere)
+    touching = with_rigid(scene, clean, "sphere", p + (r - 0.001) * out, yaw_matrix(30.0), slice(6, None))
+    assert check(scene, touching) is None
+    deep = with_rigid(scene, clean, "sphere", p + (r - 0.012) * out, yaw_matrix(30.0), slice(6, None))
+    assert check(scene, deep) == ("penetration", 6)
+
+
+def test_bag_vertex_inside_held_cube(scene_cfg, clean):
+    scene = build_scene(scene_cfg, ["bag"], held={"cube": ("right_link6", HELD_POSE)})
+    clean["link_poses"] = scene.link_poses(clean["action"])
+    assert check(scene, clean) is None
+    i, out = side_vertex(scene)
+    k = scene.link_names.index("held_cube")
+    rot = quat_matrices(clean["link_poses"][0, k, 3:])
+    # the cube (tilted with the wrist) moved so that the vertex is 1 cm inside its +x face
+    local = np.array([scene_cfg.cube.half_extent_m - 0.01, 0.0, 0.0])
+    clean["link_poses"][5:, k, :3] = clean["x"][0, i] - rot @ local
+    assert check(scene, clean) == ("penetration", 5)
+
+
+def test_handed_off_object_is_judged_by_its_rows_of_x(scene_cfg, clean):
+    """An object both held and predicted (a hand-off) is checked where x puts it, not at its held pose."""
+    scene = build_scene(scene_cfg, ["bag", "cube"], held={"cube": ("right_link6", HELD_POSE)})
+    clean["link_poses"] = scene.link_poses(clean["action"])
+    i, out = side_vertex(scene)
+    k = scene.link_names.index("held_cube")
+    clean["link_poses"][:, k, :3] = clean["x"][0, i]  # stale held pose right on the bag: ignored
+    ep = with_rigid(scene, clean, "cube", rigid_rest_centre(scene, "cube"))
+    assert check(scene, ep) is None
+    h = scene_cfg.cube.half_extent_m
+    deep = with_rigid(scene, clean, "cube", clean["x"][0, i] + (h - 0.01) * out, yaw_matrix(90.0), slice(8, None))
+    assert check(scene, deep) == ("penetration", 8)
+
+
+def test_scene_without_cloth(scene_cfg):
+    """No bag: the cloth checks pass trivially; the checks of every predicted object still run."""
+    scene = build_scene(scene_cfg, ["sphere"])
+    rest = scene.objects["sphere"].vertices + rigid_rest_centre(scene, "sphere")
+    x = np.repeat(rest[None], T, axis=0).astype(np.float32)
+    action = np.repeat(scene.home_action()[None], T, axis=0)
+    ep = {"x": x, "v": np.zeros_like(x), "action": action, "link_poses": scene.link_poses(action)}
+    assert check(scene, ep) is None
+    ep["x"][4, 0, 0] = np.inf
+    assert check(scene, ep) == ("non_finite", 4)
+
+
+def test_convex_depth_is_exact(scene_cfg):
+    cube = build_scene(scene_cfg, ["cube"]).objects["cube"]
+    h = scene_cfg.cube.half_extent_m
+    planes = convex_planes(cube.vertices, cube.faces, "cube")
+    assert len(planes[0]) == 6  # the grid's coplanar triangles share their face's plane
+    rot = np.stack([yaw_matrix(a) @ yaw_matrix(90.0)[[2, 0, 1]] for a in (0.0, 40.0, 135.0)])  # (3, 3, 3)
+    pos = np.array([[0.1, 0.2, 0.3], [0.0, 0.0, 0.0], [-0.2, 0.1, 0.05]])
+    local = np.array([[0.0, 0.0, 0.0], [h - 0.005, 0.0, 0.0], [h - 0.001, h - 0.002, 0.0], [h + 0.01, 0.0, 0.0]])
+    for j, want in enumerate([h, 0.005, 0.001, -0.01]):
+        world = np.einsum("tij,j->ti", rot, local[j])[:, None] + pos[:, None]
+        assert np.allclose(convex_depth(world, pos, rot, planes), want)
+    far = pos[:, None] + np.array([1.0, 0.0, 0.0])
+    assert np.all(convex_depth(far, pos, rot, planes) == -np.inf)
+
+
+def test_rigid_frames_recover_pose(scene_cfg):
+    sphere = build_scene(scene_cfg, ["sphere"]).objects["sphere"]
+    q = np.array([[0.0, 0.0, 0.0, 1.0], [0.3, -0.2, 0.5, 0.78]])
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    rot = quat_matrices(q)
+    pos = np.array([[0.0, 0.0, 0.0], [0.1, -0.2, 0.3]])
+    x = np.einsum("tij,nj->tni", rot, sphere.vertices.astype(np.float64)) + pos[:, None]
+    fit_pos, fit_rot = rigid_frames(sphere.vertices, x)
+    assert np.allclose(fit_pos, pos, atol=1e-6) and np.allclose(fit_rot, rot, atol=1e-6)
+
+
+def test_convex_planes_rejects_non_convex(scene_cfg):
+    cube = build_scene(scene_cfg, ["cube"]).objects["cube"]
+    dented = cube.vertices.copy()
+    top = int(np.argmin(np.abs(dented[:, 0]) + np.abs(dented[:, 1]) - dented[:, 2]))  # centre of the top face
+    dented[top, 2] -= 0.01
+    with pytest.raises(ValueError, match="convex"):
+        convex_planes(dented, cube.faces, "dented cube")

@@ -327,3 +327,29 @@ def test_segment_dataset_dataloader(tmp_path: Path) -> None:
     b = batches[0]
     assert b["x"].shape == (4, 5, N, 3) and b["action"].shape == (4, 5, 14)
     assert b["link_poses"].shape == (4, 5, len(LINKS), 7) and b["env_poses"].shape == (4, 5, len(ENVS), 7)
+
+
+
+def test_episode_with_a_subset_of_objects_and_links(tmp_path: Path) -> None:
+    """An episode may hold only some objects and link columns; the reader returns its layout."""
+    full = _episode(4)
+    ep = dict(full, x=full["x"][:, :N_BAG], v=full["v"][:, :N_BAG], link_poses=full["link_poses"][:, :2])
+    layout = dict(objects=["bag"], links=LINKS[:2])
+    with _writer(tmp_path / "s.zarr") as w:
+        _add_scene(w)
+        eid = w.add_episode(**ep, **layout, **_attrs(0))
+        with pytest.raises(ValueError, match="must follow the store's order"):
+            w.add_episode(**full, objects=["cube", "bag"], **_attrs(1))
+        with pytest.raises(ValueError, match="not in the store"):
+            w.add_episode(**full, links=["left_link6"], **_attrs(1))
+        with pytest.raises(ValueError, match="x"):
+            w.add_episode(**full, **layout, **_attrs(1))  # x still holds the cube's rows
+        w.add_episode(**full, **_attrs(2))  # no layout attrs: every object and link
+    s = TrajectoryStore(tmp_path / "s.zarr")
+    assert s.episode_objects(eid) == ["bag"] and s.episode_links(eid) == LINKS[:2]
+    assert s.episode_layout(eid) == {"bag": slice(0, N_BAG)}
+    got = s.read_episode(eid)
+    assert got["x"].shape == (4, N_BAG, 3) and got["link_poses"].shape == (4, 2, 7)
+    np.testing.assert_allclose(got["x"], ep["x"].astype(np.float32))
+    last = s.episode_ids[-1]
+    assert s.episode_layout(last) == {"bag": slice(0, N_BAG), "cube": slice(N_BAG, N)}

@@ -47,8 +47,10 @@ class SegmentSampler:
 class SegmentDataset(Dataset[dict[str, torch.Tensor]]):
     """Every window of a store as a map-style dataset; item = {x, v, action, link_poses, env_poses}.
 
-    Shapes: x, v (window, N_total, 3); action (window, 14); link_poses (window, L, 7);
-    env_poses (window, E, 7); all float32. The store opens lazily in each DataLoader worker.
+    Shapes: x, v (window, N_e, 3); action (window, 14); link_poses (window, L_e, 7);
+    env_poses (window, E, 7); all float32, with N_e and L_e those of the segment's episode
+    (`TrajectoryStore.episode_layout`): batch segments of one task, or pad, when they differ.
+    The store opens lazily in each DataLoader worker.
     """
 
     def __init__(self, store_path: str | os.PathLike[str], window: int, split: str | None = None, *,

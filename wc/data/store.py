@@ -12,10 +12,18 @@ Layout (see DESIGN.md, "Trajectory store"); all float arrays float32, faces int3
       objects/<name>/     rest_positions (N, 3) m, faces (F, 3), rest_uv (N, 2), vertex_area (N,) m^2
                           attrs: kind (cloth|rigid), tag (int), material (dict)
       prescribed/<name>/  local_points (M, 3) m, local_normals (M, 3); attrs: tag (int), link (str)
-      episodes/ep_000000/ x, v (T, N_total, 3) m, m/s; action (T, 14);
-                          link_poses (T, L, 7), env_poses (T, E, 7): pos m, quat xyzw
+      episodes/ep_000000/ x, v (T, N_e, 3) m, m/s; action (T, 14);
+                          link_poses (T, L_e, 7), env_poses (T, E, 7): pos m, quat xyzw
                           attrs: task, seed, cell, speed, amplitude, split, accepted,
                                  first_failure, source (+ any extra JSON attrs)
+                          optional layout attrs (default: everything in the store):
+                            objects  [name, ...]  the objects present, in object_order; x concatenates
+                                                  them (N_e = their vertex count)
+                            links    [name, ...]  columns of link_poses (L_e), a subsequence of link_names
+                            held     {object: {link, local_pose}}  held (prescribed) objects and where
+                            handoff  {object: k}  the object is prescribed (pose `held_<object>`) in
+                                                  frames < k and predicted from frame k on; its rows of x
+                                                  follow the held pose before k
 
 Episode arrays are chunked along T only (`chunk_frames` frames per chunk) and zstd compressed,
 so a short window reads one or two chunks. Float arrays have fill value NaN: a missing chunk
@@ -43,6 +51,7 @@ SCHEMA = "worldcontact-trajectories/1"
 SCHEMA_PREFIX = "worldcontact-trajectories/"
 EPISODE_ARRAYS = ("x", "v", "action", "link_poses", "env_poses")
 EPISODE_ATTRS = ("task", "seed", "cell", "speed", "amplitude", "split", "accepted", "first_failure", "source")
+LAYOUT_ATTRS = ("objects", "links")  # optional per-episode subsets of object_order / link_names
 SPLITS = ("train", "val", "test", None)
 SOURCES = ("simulator", "worldcontact")
 KINDS = ("cloth", "rigid")
@@ -107,6 +116,18 @@ def _check_shape(name: str, arr: np.ndarray, shape: tuple[int | None, ...], wher
         raise ValueError(f"{where}: array '{name}' has shape {arr.shape}, expected {want}")
 
 
+def _subsequence(names: Any, full: Sequence[str], what: str, where: str) -> list[str]:
+    """`names` as a list, checked to be a non-repeating subsequence of `full` in its order."""
+    if not isinstance(names, (list, tuple)) or not all(isinstance(n, str) for n in names):
+        raise TypeError(f"{where}: attr '{what}' must be a list of names, got {names!r}")
+    unknown = [n for n in names if n not in full]
+    if unknown:
+        raise ValueError(f"{where}: attr '{what}' names {unknown}, not in the store's {list(full)}")
+    if list(names) != [n for n in full if n in names]:
+        raise ValueError(f"{where}: attr '{what}' {list(names)} must follow the store's order {list(full)}")
+    return list(names)
+
+
 def _check_finite(name: str, arr: np.ndarray, where: str) -> None:
     """Raise if `arr` has NaN/Inf, naming the first bad index along axis 0 (the frame for episodes)."""
     if arr.size and not np.isfinite(arr).all():
@@ -138,7 +159,7 @@ class ObjectMesh:
     kind: str  # cloth | rigid
     tag: int
     material: dict[str, Any]
-    vertices: slice  # rows of this object in episode x / v (N_total axis)
+    vertices: slice  # rows of this object in x of an episode holding every object (see episode_layout)
 
 
 @dataclass(frozen=True)
@@ -356,7 +377,8 @@ class TrajectoryWriter:
                     env_poses: np.ndarray, *, episode_id: str | None = None, **attrs: Any) -> str:
         """Validate and write one episode; returns its id (next ``ep_%06d`` unless `episode_id` is given).
 
-        x, v (T, N_total, 3) m, m/s; action (T, 14); link_poses (T, L, 7); env_poses (T, E, 7).
+        x, v (T, N_e, 3) m, m/s; action (T, 14); link_poses (T, L_e, 7); env_poses (T, E, 7), where the
+        optional attrs `objects` / `links` choose the present objects and link columns (default: all).
         `attrs` must hold task, seed, cell, speed, amplitude, split, accepted, first_failure,
         source; extra JSON-serialisable attrs are kept.
         """
@@ -371,7 +393,10 @@ class TrajectoryWriter:
             raise ValueError(f"episode {eid} was already written")
         where = f"episode {eid}"
         clean_attrs = self._check_attrs(attrs, where)
-        n_total, L, E = self._offsets()[-1], len(self.link_names), len(self.env_names)
+        objects = _subsequence(clean_attrs.get("objects", self.object_order), self.object_order, "objects", where)
+        links = _subsequence(clean_attrs.get("links", self.link_names), self.link_names, "links", where)
+        n_total = sum(self._vertex_counts[n] for n in objects)
+        L, E = len(links), len(self.env_names)
         arrays = {k: _as_array(k, a, np.float32, where)
                   for k, a in zip(EPISODE_ARRAYS, (x, v, action, link_poses, env_poses))}
         T = arrays["x"].shape[0] if arrays["x"].ndim else 0
@@ -471,7 +496,7 @@ class TrajectoryStore:
 
     @property
     def num_vertices(self) -> int:
-        """N_total: rows of episode x / v."""
+        """N_total: rows of x / v of an episode holding every object."""
         return int(self._attrs["object_offsets"][-1])
 
     @property
@@ -540,15 +565,33 @@ class TrajectoryStore:
         return [e for e in self.episode_ids
                 if all(self.episode_attrs(e).get(k) == v for k, v in want.items())]
 
+    def episode_objects(self, eid: str) -> list[str]:
+        """Objects present in an episode (rows of its x, in this order); all objects unless it says."""
+        return list(self.episode_attrs(eid).get("objects", self.object_names))
+
+    def episode_links(self, eid: str) -> list[str]:
+        """Columns of an episode's link_poses; all link_names unless it says."""
+        return list(self.episode_attrs(eid).get("links", self.link_names))
+
+    def episode_layout(self, eid: str) -> dict[str, slice]:
+        """Rows of each present object in the episode's x / v."""
+        out, start = {}, 0
+        for name in self.episode_objects(eid):
+            n = self.objects[name].rest_positions.shape[0]
+            out[name] = slice(start, start + n)
+            start += n
+        return out
+
     def _episode_arrays(self, eid: str) -> dict[str, zarr.Array]:
         if eid not in self._arrays:
             self._episode_group(eid)  # KeyError for unknown ids
             arrs = {k: self._member(f"episodes/{eid}/{k}") for k in EPISODE_ARRAYS}
             T = arrs["x"].shape[0]
+            n = sum(s.stop - s.start for s in self.episode_layout(eid).values())
             bad = {k: a.shape for k, a in arrs.items() if a.shape[0] != T}
-            if bad or arrs["x"].shape[1] != self.num_vertices:
+            if bad or arrs["x"].shape[1] != n or arrs["link_poses"].shape[1] != len(self.episode_links(eid)):
                 raise ValueError(f"{self.path}: corrupt episode {eid}: inconsistent shapes "
-                                 f"{ {k: a.shape for k, a in arrs.items()} } (N_total {self.num_vertices})")
+                                 f"{ {k: a.shape for k, a in arrs.items()} } (N {n}, links {self.episode_links(eid)})")
             self._arrays[eid] = arrs
         return self._arrays[eid]
 
@@ -574,7 +617,7 @@ class TrajectoryStore:
         return out
 
     def read_episode(self, eid: str, fields: Sequence[str] = EPISODE_ARRAYS) -> dict[str, np.ndarray]:
-        """Whole episode: {x, v (T, N_total, 3), action (T, 14), link_poses (T, L, 7), env_poses (T, E, 7)}."""
+        """Whole episode: {x, v (T, N_e, 3), action (T, 14), link_poses (T, L_e, 7), env_poses (T, E, 7)}."""
         return self._read(eid, slice(0, self.num_frames(eid)), fields)
 
     def read_window(self, eid: str, start: int, length: int,

@@ -31,8 +31,12 @@ class EpisodeSpec:
 
 
 class Task(Protocol):
+    """Reset = initial_state -> settle (if `settle`) -> prepare; Execute = actions, open loop."""
+
     name: ClassVar[str]
     objects: ClassVar[tuple[str, ...]]  # predicted objects this task's scene needs
+    settle: ClassVar[bool]  # let the objects come to rest before frame 0
+    handoff: ClassVar[tuple[str, ...]]  # held objects that become predicted when their gripper opens
 
     def num_cells(self) -> int: ...
 
@@ -48,9 +52,22 @@ class Task(Protocol):
         """(14,) robot posture held while the objects settle; also frame 0's action."""
         ...
 
+    def prepare(self, scene: Scene, settled: ObjectState, spec: EpisodeSpec, rng: np.random.Generator
+                ) -> ObjectState:
+        """Frame 0's state from the settled one."""
+        ...
+
+    def held(self) -> dict[str, tuple[str, np.ndarray]]:
+        """Objects held from the start: name -> (link, local pose (7,))."""
+        ...
+
     def actions(self, scene: Scene, settled: ObjectState, spec: EpisodeSpec, start: np.ndarray,
                 frame_dt_s: float) -> np.ndarray:
-        """(T, 14) commanded actions from frame 0 (the settled state, action `start`) on; open loop."""
+        """(T, 14) commanded actions from frame 0 (the prepared state, action `start`) on; open loop."""
+        ...
+
+    def check(self, scene: Scene, spec: EpisodeSpec, x: np.ndarray, action: np.ndarray) -> str | None:
+        """Task-level verdict on a finished episode (None = did what it should)."""
         ...
 
 
@@ -74,15 +91,17 @@ def task_names() -> list[str]:
 
 
 def get_task(name: str, params: dict[str, Any]) -> Task:
-    """Instantiate task `name` from its section `tasks.<name>` of the params."""
+    """Instantiate task `name` from its section `tasks.<name>` (+ the shared `tasks.common`)."""
     from wc.config import load_section
+    from wc.tasks.common import CommonTaskConfig
 
     _import_all()
     if name not in _REGISTRY:
         raise ValueError(f"unknown task {name!r}; known tasks: {sorted(_REGISTRY)}")
     cls, config_cls = _REGISTRY[name]
-    tasks = {"_source": params.get("_source", "<params>"), **params.get("tasks", {})}
-    return cls(load_section(tasks, name, config_cls))
+    scoped = {"_source": params.get("_source", "<params>"),
+              **{f"tasks.{k}": v for k, v in (params.get("tasks") or {}).items()}}  # errors name tasks.<x>.<key>
+    return cls(load_section(scoped, f"tasks.{name}", config_cls), load_section(scoped, "tasks.common", CommonTaskConfig))
 
 
 def _import_all() -> None:

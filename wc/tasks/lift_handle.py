@@ -1,205 +1,203 @@
-"""Task 8, the policy task "right grasp and lift": pinch one handle with the right gripper, lift, hold.
+"""One-arm handle tasks: the right gripper pinches the handle nearer it, then ...
 
-Coverage cell = (grasp depth below the handle's apex, position across the strap, initial bag yaw);
-speed = TCP speed [m/s]; amplitude = lift height [m].
+- grasp_handle (7): ... holds it without lifting (amplitude = the commanded closed opening);
+- lift_handle (8, the policy task "right grasp and lift"): ... lifts by amplitude and holds;
+- place (11): ... lifts, carries the bag sideways, sets it down and lets go;
+- release_drop (12): ... lifts by amplitude and lets go;
+- shake (13): ... lifts and oscillates horizontally (amplitude, peak speed).
+
+Coverage cell = (grasp depth below the handle's apex, position across the strap, initial bag yaw
+[, task-specific bin]); speed = TCP speed [m/s].
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
-import torch
 
 from wc.dynamics import ObjectState
-from wc.scene.ik import solve_tool_ik
-from wc.scene.piper import tool_pose
 from wc.scene.scene import Scene
-from wc.sim.kinematic import quat_rotate
-from wc.tasks.base import EpisodeSpec, InfeasibleEpisode, register_task
+from wc.tasks.bag_geometry import bag_rows, handle_grasp, lowest_height, placed
+from wc.tasks.base import EpisodeSpec, register_task
+from wc.tasks.common import TaskProgram, check_range
+from wc.tasks.motion import ArmProgram, compose, reach, tool_rotation
 
 
 @dataclass(frozen=True)
-class LiftHandleConfig:
+class HandleConfig:
     grasp_depth_bins_m: tuple[float, ...]  # pinch this far below the handle apex
     grasp_across_bins: tuple[float, ...]  # position across the strap width, 0..1
     yaw_bins_deg: tuple[float, ...]  # initial bag yaw about z
-    bag_center_xy_m: tuple[float, float]
-    bag_jitter_m: float  # uniform xy jitter of the initial bag position
-    drop_height_m: float  # bag bottom above the table top before settling
     speed_range_m_s: tuple[float, float]  # TCP speed
-    amplitude_range_m: tuple[float, float]  # lift height
-    start_height_m: float  # TCP distance back along the approach axis while the bag settles
-    approach_height_m: float  # pre-grasp TCP distance back along the approach axis
-    approach_tilt_deg: float  # approach axis tilted from vertical, away from the arm's base
+    amplitude_range_m: tuple[float, float]  # lift height (grasp_handle: commanded closed opening)
     lift_tilt_deg: float  # tilt at the top of the lift (the arm reaches higher with more tilt)
     lift_retract_m: float  # the lift also pulls back this far towards the arm's base
-    open_m: float  # gripper opening while approaching
-    closed_m: float  # commanded opening when pinching
-    close_s: float
     hold_s: float
-    ik_iterations: int
-    ik_tolerance_m: float  # a plan whose IK misses by more is infeasible (a jerky arm would shake the grip)
-    ik_tolerance_rad: float
-    success_lift_m: float  # accepted if the bag's lowest vertex ends this far above the table
+    success_lift_m: float  # lifted if the bag's lowest vertex ends this far above the table
 
     def validate(self) -> None:
-        for name in ("grasp_depth_bins_m", "grasp_across_bins", "yaw_bins_deg"):
-            if not getattr(self, name):
-                raise ValueError(f"{name} must list at least one bin")
-        lo, hi = self.speed_range_m_s
-        if not 0 < lo <= hi:
-            raise ValueError(f"speed_range_m_s must satisfy 0 < low <= high, got {self.speed_range_m_s}")
-        lo, hi = self.amplitude_range_m
-        if not 0 < lo <= hi:
-            raise ValueError(f"amplitude_range_m must satisfy 0 < low <= high, got {self.amplitude_range_m}")
-        if self.close_s <= 0 or self.hold_s < 0:
-            raise ValueError("close_s must be positive and hold_s non-negative")
+        check_range("speed_range_m_s", self.speed_range_m_s)
+        check_range("amplitude_range_m", self.amplitude_range_m, low_may_be_zero=True)
+        if self.hold_s < 0:
+            raise ValueError("hold_s must be non-negative")
 
 
-def _handle_of_right_arm(scene: Scene, x: np.ndarray) -> str:
-    """The bag handle nearer the right arm's base."""
-    bag = scene.objects["bag"]
-    centroid = {g: x[bag.groups[g]].mean(0) for g in ("handle_0", "handle_1")}
-    return min(centroid, key=lambda g: np.linalg.norm(centroid[g][:2] - scene.right_base[:2]))
+@dataclass(frozen=True)
+class PlaceConfig(HandleConfig):
+    place_direction_bins_deg: tuple[float, ...] = (90.0,)  # carry direction, world yaw
+    place_distance_m: float = 0.06
+    set_down_height_m: float = 0.01  # lowest bag point above the table when releasing
 
 
-def tool_rotation(separation: np.ndarray, away: np.ndarray, tilt_deg: float) -> np.ndarray:
-    """TCP rotation (3, 3) [x, y = pad separation, z = approach]: the approach points down, tilted by
-    tilt_deg towards the horizontal `away`; the pads separate along `separation` made normal to it."""
-    tilt = np.deg2rad(tilt_deg)
-    z = -np.cos(tilt) * np.array([0.0, 0.0, 1.0]) + np.sin(tilt) * away
-    y = separation - (separation @ z) * z
-    y /= np.linalg.norm(y)
-    return np.stack([np.cross(y, z), y, z], axis=1)
+@dataclass(frozen=True)
+class ReleaseDropConfig(HandleConfig):
+    fall_s: float = 0.6  # recorded after the gripper opened
 
 
-def grasp_frame(scene: Scene, x: np.ndarray, depth_m: float, across: float,
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Grasp point (3,), pad separation axis (3,) and horizontal direction away from the right arm's
-    base (3,) for pinching the right-arm handle in state x.
-
-    The pads straddle the strap's two legs below its apex and squeeze them together: the pad
-    separation axis is the strap's horizontal front-to-back direction; the approach points down,
-    tilted away from the arm's base (a PiPER cannot point straight down at handle height).
-    """
-    bag = scene.objects["bag"]
-    xb = x[scene.vertex_slices()["bag"]]
-    idx = bag.groups[_handle_of_right_arm(scene, xb)]
-    u, s = bag.attributes["handle_u"][idx], bag.attributes["handle_s"][idx]
-    band = idx[np.abs(u - across) <= np.abs(u - across).min() + 1e-6]
-    apex = xb[band[np.argmax(xb[band, 2])]]
-    point = apex - np.array([0.0, 0.0, depth_m])
-    sep = xb[idx[s < 0.5]].mean(0) - xb[idx[s > 0.5]].mean(0)
-    sep[2] = 0.0
-    y = sep / np.linalg.norm(sep) if np.linalg.norm(sep) > 1e-6 else np.array([0.0, 1.0, 0.0])
-    home_y = quat_rotate(scene.right_base[3:], np.array([0.0, 1.0, 0.0]))  # TCP y at home, yawed with the base
-    y = y if y @ home_y >= 0 else -y  # the pads are symmetric: take the sign that needs the least wrist roll
-    # centre the pads between the strap's legs at and below the pinch height (a settled strap may lean)
-    legs = xb[idx[(xb[idx, 2] <= point[2] + 0.5 * depth_m) & (xb[idx, 2] >= point[2] - depth_m)]]
-    if len(legs):
-        spread = (legs - point) @ y
-        point = point + 0.5 * (spread.min() + spread.max()) * y
-    away = point - scene.right_base[:3]  # radial: the arm tilts its tool most easily in its own plane
-    away[2] = 0.0
-    away = away / np.linalg.norm(away) if np.linalg.norm(away) > 1e-6 else np.zeros(3)
-    return point, y, away
+@dataclass(frozen=True)
+class ShakeConfig(HandleConfig):
+    shake_axis_bins_deg: tuple[float, ...] = (0.0, 90.0)  # oscillation direction, world yaw
+    lift_m: float = 0.1
+    cycles: float = 2.0
 
 
-@register_task("lift_handle", LiftHandleConfig)
-class LiftHandle:
-    objects = ("bag",)
+class HandleTask(TaskProgram):
+    """Approach, pinch and (in subclasses) move the right-arm handle."""
 
-    def __init__(self, config: LiftHandleConfig):
-        self.cfg = config
-
-    def _cell(self, cell: int) -> tuple[float, float, float]:
-        shape = (len(self.cfg.grasp_depth_bins_m), len(self.cfg.grasp_across_bins), len(self.cfg.yaw_bins_deg))
-        i, j, k = np.unravel_index(cell % self.num_cells(), shape)
-        return self.cfg.grasp_depth_bins_m[i], self.cfg.grasp_across_bins[j], self.cfg.yaw_bins_deg[k]
-
-    def num_cells(self) -> int:
-        return len(self.cfg.grasp_depth_bins_m) * len(self.cfg.grasp_across_bins) * len(self.cfg.yaw_bins_deg)
-
-    def speed_range(self) -> tuple[float, float]:
-        return self.cfg.speed_range_m_s
-
-    def amplitude_range(self) -> tuple[float, float]:
-        return self.cfg.amplitude_range_m
+    SIDE: ClassVar[str] = "right"
+    BINS = ("grasp_depth_bins_m", "grasp_across_bins", "yaw_bins_deg")
 
     def initial_state(self, scene: Scene, spec: EpisodeSpec, rng: np.random.Generator) -> ObjectState:
-        _, _, yaw = self._cell(spec.cell)
-        half = np.deg2rad(yaw) / 2.0
-        quat = np.array([0.0, 0.0, np.sin(half), np.cos(half)])
-        centre = np.asarray(self.cfg.bag_center_xy_m) + rng.uniform(-1, 1, 2) * self.cfg.bag_jitter_m
-        offset = np.array([*centre, scene.table.top_z + self.cfg.drop_height_m])
-        x = quat_rotate(quat[None], scene.objects["bag"].vertices) + offset
-        return ObjectState(x.astype(np.float32), np.zeros_like(x, dtype=np.float32))
+        return upright_bag(scene, self.common, self.cell_values(spec.cell)["yaw_bins_deg"], rng)
 
-    def _solve(self, scene: Scene, points: np.ndarray, rot: np.ndarray, q_init: np.ndarray) -> np.ndarray:
-        """Right-arm joints (K, 6) reaching TCP points (K, 3) with rotations (3, 3) or (K, 3, 3), warm-started."""
-        q, pos_err, rot_err = solve_tool_ik(
-            torch.as_tensor(points, dtype=torch.float32),
-            torch.as_tensor(np.broadcast_to(rot, (len(points), 3, 3)).copy(), dtype=torch.float32),
-            torch.as_tensor(q_init, dtype=torch.float32), torch.as_tensor(scene.right_base),
-            iterations=self.cfg.ik_iterations)
-        if float(pos_err.max()) > self.cfg.ik_tolerance_m or float(rot_err.max()) > self.cfg.ik_tolerance_rad:
-            raise InfeasibleEpisode(f"lift_handle: target out of the right arm's reach (IK error "
-                                    f"{float(pos_err.max()):.4f} m, {float(rot_err.max()):.3f} rad)")
-        return q.numpy()
-
-    def _start_q(self, scene: Scene, x: np.ndarray, spec: EpisodeSpec) -> np.ndarray:
-        depth, across, _ = self._cell(spec.cell)
-        point, y, away = grasp_frame(scene, x, depth, across)
-        rot = tool_rotation(y, away, self.cfg.approach_tilt_deg)
-        above = point - self.cfg.start_height_m * rot[:, 2]
-        return self._solve(scene, above[None], rot, np.asarray(scene.home_q, np.float32)[None])[0]
+    def _grasp(self, scene: Scene, x: np.ndarray, spec: EpisodeSpec, side: str | None = None):
+        c = self.cell_values(spec.cell)
+        side = side or self.SIDE
+        point, y, away = handle_grasp(scene, x, side, c["grasp_depth_bins_m"], c["grasp_across_bins"])
+        return point, y, away, tool_rotation(y, away, self.common.approach_tilt_deg)
 
     def settle_action(self, scene: Scene, spec: EpisodeSpec, initial: ObjectState) -> np.ndarray:
-        action = scene.home_action()
-        action[7:13] = self._start_q(scene, initial.x, spec)
-        action[13] = self.cfg.open_m
-        return action
+        return hover_action(scene, self.common, [(self.SIDE, *self._grasp(scene, initial.x, spec)[::3])],
+                            self.name)
 
-    def check(self, scene: Scene, x: np.ndarray, action: np.ndarray) -> str | None:
-        """'not_lifted' unless the bag's lowest vertex is success_lift_m above the table at the end."""
-        bag = x[-1, scene.vertex_slices()["bag"]]
-        return None if bag[:, 2].min() - scene.table.top_z >= self.cfg.success_lift_m else "not_lifted"
+    def approach(self, scene: Scene, state: ObjectState, spec: EpisodeSpec, start: np.ndarray,
+                 side: str | None = None) -> tuple[ArmProgram, np.ndarray, np.ndarray, np.ndarray]:
+        """Program: pre-grasp, descend along the approach axis, close. Returns it with the grasp
+        point, pad axis and away direction."""
+        side = side or self.SIDE
+        c = self.common
+        point, y, away, rot = self._grasp(scene, state.x, spec, side)
+        speed = min(spec.speed, max(self.speed_range()))
+        program = ArmProgram(scene, side, start)
+        program.move(point - c.approach_height_m * rot[:, 2], rot, c.open_m, speed=speed)
+        program.move(point, speed=speed).grip(c.closed_m, c.close_s)
+        return program, point, y, away
+
+    def lift(self, program: ArmProgram, scene: Scene, point: np.ndarray, y: np.ndarray, away: np.ndarray,
+             height: float, speed: float) -> np.ndarray:
+        """Append a lift by `height` (with the configured retract and tilt); returns the top point."""
+        top = point + np.array([0.0, 0.0, height]) - self.cfg.lift_retract_m * away
+        program.move(top, tool_rotation(y, away, self.cfg.lift_tilt_deg), speed=speed)
+        return top
 
     def actions(self, scene: Scene, settled: ObjectState, spec: EpisodeSpec, start: np.ndarray,
                 frame_dt_s: float) -> np.ndarray:
-        cfg = self.cfg
-        depth, across, _ = self._cell(spec.cell)
-        grasp, y, away = grasp_frame(scene, settled.x, depth, across)
-        approach = tool_rotation(y, away, cfg.approach_tilt_deg)[:, 2]
-        # where the tool really is at frame 0 (planned before the bag settled), so frame 1 does not jump
-        start_tcp = tool_pose(torch.as_tensor(start[7:13]), float(start[13]), torch.as_tensor(scene.right_base))
-        start_tcp = start_tcp[:3].numpy().astype(np.float64)
-        pre = grasp - cfg.approach_height_m * approach
-        lifted = grasp + np.array([0.0, 0.0, spec.amplitude]) - cfg.lift_retract_m * away
-        tilt0, tilt1 = cfg.approach_tilt_deg, cfg.lift_tilt_deg
-        # (TCP position, tilt, gripper opening, duration [s] to reach them from the previous waypoint)
-        legs = [(pre, tilt0, cfg.open_m, np.linalg.norm(pre - start_tcp) / spec.speed),
-                (grasp, tilt0, cfg.open_m, cfg.approach_height_m / spec.speed),
-                (grasp, tilt0, cfg.closed_m, cfg.close_s),
-                (lifted, tilt1, cfg.closed_m, np.linalg.norm(lifted - grasp) / spec.speed),
-                (lifted, tilt1, cfg.closed_m, cfg.hold_s)]
-        return self._trajectory(scene, start, start_tcp, legs, y, away, frame_dt_s)
+        program, point, y, away = self.approach(scene, settled, spec, start)
+        self.after_grasp(program, scene, point, y, away, spec, frame_dt_s)
+        return compose(scene, start, [program], frame_dt_s, self.common.ik, self.name)
 
-    def _trajectory(self, scene: Scene, start: np.ndarray, start_tcp: np.ndarray, legs: list, y: np.ndarray,
-                    away: np.ndarray, frame_dt_s: float) -> np.ndarray:
-        """Frame-by-frame actions (T, 14) following straight TCP legs, IK solved per frame."""
-        frames = [start[None]]
-        tcp, tilt, opening, q = start_tcp, self.cfg.approach_tilt_deg, start[13], start[7:13]
-        for target, target_tilt, target_open, duration in legs:
-            n = max(1, int(np.ceil(duration / frame_dt_s)))
-            alpha = (np.arange(1, n + 1) / n)[:, None]
-            points = (1 - alpha) * tcp + alpha * target
-            rots = np.stack([tool_rotation(y, away, (1 - a) * tilt + a * target_tilt) for a in alpha[:, 0]])
-            q_leg = self._solve(scene, points, rots, np.repeat(q[None], n, axis=0))
-            leg = np.repeat(start[None], n, axis=0)
-            leg[:, 7:13] = q_leg
-            leg[:, 13] = (1 - alpha[:, 0]) * opening + alpha[:, 0] * target_open
-            frames.append(leg)
-            tcp, tilt, opening, q = target, target_tilt, target_open, q_leg[-1]
-        return np.concatenate(frames).astype(np.float32)
+    def after_grasp(self, program: ArmProgram, scene: Scene, point: np.ndarray, y: np.ndarray,
+                    away: np.ndarray, spec: EpisodeSpec, frame_dt_s: float) -> None:
+        raise NotImplementedError
+
+
+def upright_bag(scene: Scene, common, yaw_deg: float, rng: np.random.Generator) -> ObjectState:
+    """The bag standing on the table (a little above it), yawed, jittered in xy."""
+    centre = np.asarray(common.bag_center_xy_m) + rng.uniform(-1, 1, 2) * common.bag_jitter_m
+    x = placed(scene.objects["bag"].vertices, yaw_deg, 0.0, centre, scene.table.top_z + common.drop_height_m)
+    return ObjectState(x, np.zeros_like(x))
+
+
+def hover_action(scene: Scene, common, targets: list[tuple[str, np.ndarray, np.ndarray]], task: str) -> np.ndarray:
+    """Home action with each listed arm's TCP `start_height_m` back along the approach from its
+    target point, gripper open: (side, point, rotation) per arm."""
+    action = scene.home_action()
+    for side, point, rot in targets:
+        cols, opening = (slice(7, 13), 13) if side == "right" else (slice(0, 6), 6)
+        action[cols] = reach(scene, side, point - common.start_height_m * rot[:, 2], rot, common.ik, task)
+        action[opening] = common.open_m
+    return action
+
+
+@register_task("grasp_handle", HandleConfig)
+class GraspHandle(HandleTask):
+    def after_grasp(self, program, scene, point, y, away, spec, frame_dt_s) -> None:
+        program.grip(spec.amplitude, self.common.close_s).hold(self.cfg.hold_s)
+
+
+@register_task("lift_handle", HandleConfig)
+class LiftHandle(HandleTask):
+    def after_grasp(self, program, scene, point, y, away, spec, frame_dt_s) -> None:
+        self.lift(program, scene, point, y, away, spec.amplitude, spec.speed)
+        program.hold(self.cfg.hold_s)
+
+    def check(self, scene: Scene, spec: EpisodeSpec, x: np.ndarray, action: np.ndarray) -> str | None:
+        """'not_lifted' unless the bag's lowest vertex is success_lift_m above the table at the end."""
+        return None if lowest_height(scene, x[-1:])[0] >= self.cfg.success_lift_m else "not_lifted"
+
+
+@register_task("place", PlaceConfig)
+class Place(HandleTask):
+    BINS = HandleTask.BINS + ("place_direction_bins_deg",)
+
+    def after_grasp(self, program, scene, point, y, away, spec, frame_dt_s) -> None:
+        cfg = self.cfg
+        top = self.lift(program, scene, point, y, away, spec.amplitude, spec.speed)
+        yaw = np.deg2rad(self.cell_values(spec.cell)["place_direction_bins_deg"])
+        shift = cfg.place_distance_m * np.array([np.cos(yaw), np.sin(yaw), 0.0])
+        program.move(top + shift, speed=spec.speed)
+        program.move(point + shift + np.array([0.0, 0.0, cfg.set_down_height_m]) - cfg.lift_retract_m * away,
+                     speed=spec.speed)
+        program.grip(self.common.open_m, self.common.close_s)
+        program.move(program.position + np.array([0.0, 0.0, 0.04]), speed=spec.speed).hold(cfg.hold_s)
+
+    def check(self, scene: Scene, spec: EpisodeSpec, x: np.ndarray, action: np.ndarray) -> str | None:
+        """'not_placed' unless the bag ends on the table, moved at least half the carry distance."""
+        moved = np.linalg.norm(bag_rows(scene, x[-1]).mean(0)[:2] - bag_rows(scene, x[0]).mean(0)[:2])
+        on_table = lowest_height(scene, x[-1:])[0] < 0.02
+        return None if on_table and moved >= 0.5 * self.cfg.place_distance_m else "not_placed"
+
+
+@register_task("release_drop", ReleaseDropConfig)
+class ReleaseDrop(HandleTask):
+    def after_grasp(self, program, scene, point, y, away, spec, frame_dt_s) -> None:
+        self.lift(program, scene, point, y, away, spec.amplitude, spec.speed)
+        program.hold(0.2).grip(self.common.open_m, self.common.close_s)
+        program.move(program.position - 0.03 * away, seconds=0.2).hold(self.cfg.fall_s)
+
+    def check(self, scene: Scene, spec: EpisodeSpec, x: np.ndarray, action: np.ndarray) -> str | None:
+        """'not_dropped' unless the bag was lifted and then lies on the table at the end."""
+        heights = lowest_height(scene, x)
+        return None if heights.max() >= self.cfg.success_lift_m and heights[-1] < 0.02 else "not_dropped"
+
+
+@register_task("shake", ShakeConfig)
+class Shake(HandleTask):
+    BINS = HandleTask.BINS + ("shake_axis_bins_deg",)
+
+    def after_grasp(self, program, scene, point, y, away, spec, frame_dt_s) -> None:
+        cfg = self.cfg
+        approach_speed = min(spec.speed, 0.1)
+        top = self.lift(program, scene, point, y, away, cfg.lift_m, approach_speed)
+        yaw = np.deg2rad(self.cell_values(spec.cell)["shake_axis_bins_deg"])
+        axis = np.array([np.cos(yaw), np.sin(yaw), 0.0])
+        omega = spec.speed / spec.amplitude  # peak TCP speed = amplitude * omega
+        for t in np.arange(1, int(np.ceil(cfg.cycles * 2 * np.pi / omega / frame_dt_s)) + 1) * frame_dt_s:
+            program.move(top + spec.amplitude * np.sin(omega * t) * axis, seconds=frame_dt_s)
+        program.move(top, speed=approach_speed).hold(cfg.hold_s)
+
+    def check(self, scene: Scene, spec: EpisodeSpec, x: np.ndarray, action: np.ndarray) -> str | None:
+        """'dropped' unless the bag still hangs success_lift_m above the table at the end."""
+        return None if lowest_height(scene, x[-1:])[0] >= self.cfg.success_lift_m else "dropped"

@@ -11,7 +11,7 @@ Vec3 = tuple[float, float, float]
 class ValidateConfig:
     max_speed_m_s: float  # blow-up: any vertex faster than this
     max_edge_strain: float  # blow-up: rest edge stretched beyond (length / rest length - 1)
-    penetration_tol_m: float  # a cloth vertex deeper than this inside the table or a robot box
+    penetration_tol_m: float  # a cloth vertex deeper than this inside the table, a robot box or a rigid object
     self_intersection_every: int  # check triangle-triangle crossings on every k-th frame (0, k, 2k, ...)
     release_opening_m: float  # a gripper counts as released when its opening rises past this
     adhesion_radius_m: float  # cloth vertices this close to a finger pad at release are watched
@@ -20,6 +20,9 @@ class ValidateConfig:
     workspace_min_m: Vec3  # axis-aligned workspace box, world frame
     workspace_max_m: Vec3
     min_visible_fraction: float  # of cloth vertices projecting inside the view camera's image
+    val_per_task: int  # accepted episodes per task put in the val split (see wc.validate.split)
+    test_per_task: int  # ... and in the test split (filled before val; >= 1 train episode is always kept)
+    split_seed: int  # seed of the per-task shuffle that assigns the splits
     view_camera: str = "top"
 
     def validate(self) -> None:
@@ -30,6 +33,9 @@ class ValidateConfig:
                 raise ValueError(f"validate.{name} must be positive, got {getattr(self, name)}")
         if not self.min_visible_fraction <= 1:
             raise ValueError(f"validate.min_visible_fraction must be <= 1, got {self.min_visible_fraction}")
+        for name in ("val_per_task", "test_per_task", "split_seed"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"validate.{name} must be >= 0, got {getattr(self, name)}")
         if len(self.workspace_min_m) != 3 or len(self.workspace_max_m) != 3:
             raise ValueError("validate.workspace_min_m and workspace_max_m need 3 values (x, y, z)")
         if not all(lo < hi for lo, hi in zip(self.workspace_min_m, self.workspace_max_m)):

@@ -4,6 +4,7 @@ Every predicate is a pure function `(scene, episode, cfg) -> int | None`; `first
 in the fixed order of PREDICATES (non-finite first, so later checks may assume finite arrays) and
 reports the first predicate that fails. Cloth checks (penetration, self-intersection, adhesion,
 workspace, view) look at the cloth objects' vertices; non_finite and blow_up at all predicted vertices.
+The scene may hold any subset of objects (and held objects): without cloth the cloth checks pass.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ from typing import Callable
 import numpy as np
 
 from wc.scene.cameras import camera_pose, intrinsics
+from wc.scene.mesh import ObjectMesh
 from wc.scene.piper import PAD_CENTRE_IN_FINGER_M, PAD_HALF_EXTENTS_M
 from wc.scene.scene import Scene
 from wc.sim.kinematic import quat_multiply, quat_rotate
@@ -21,7 +23,8 @@ from wc.validate.config import ValidateConfig
 from wc.validate.self_intersection import crossing_edges, unique_edges
 
 OPENING_COLUMNS = {"left": 6, "right": 13}  # action = [q_L (6), d_L, q_R (6), d_R]
-CHUNK_ELEMENTS = 4_000_000  # frames x vertices x boxes evaluated at once by the box distances
+CHUNK_ELEMENTS = 4_000_000  # frames x vertices x boxes (or planes) evaluated at once by the distances
+CONVEX_TOL = 1e-6  # relative to the object's size: coplanar faces merge, convexity is checked, at this tolerance
 
 
 @dataclass(frozen=True)
@@ -120,17 +123,121 @@ def blow_up(scene: Scene, ep: Episode, cfg: ValidateConfig) -> int | None:
     return _first(bad)
 
 
+def convex_planes(vertices: np.ndarray, faces: np.ndarray, name: str = "object"
+                  ) -> tuple[np.ndarray, np.ndarray, float]:
+    """Distinct face planes of a closed convex mesh in its rest frame: outward unit normals (P, 3),
+    offsets (P,) [m] with n . p = offset on the plane, and the radius [m] of the ball about the rest
+    origin that holds the mesh.
+
+    Convexity is assumed by the penetration depth below (and checked here: ValueError if a vertex lies
+    outside a face plane); faces must be counter-clockwise seen from outside. Coplanar faces (a cube's
+    grid) share one plane.
+    """
+    v = np.asarray(vertices, np.float64)
+    tri = v[np.asarray(faces, np.int64)]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    length = np.linalg.norm(n, axis=1)
+    keep = length > 1e-12 * max(1.0, float(length.max(initial=0.0)))  # drop degenerate triangles
+    n = n[keep] / length[keep, None]
+    offset = np.einsum("fi,fi->f", n, tri[keep, 0])
+    radius = float(np.linalg.norm(v, axis=1).max(initial=0.0))
+    tol = CONVEX_TOL * max(radius, 1e-9)
+    _, first = np.unique(np.round(np.c_[n, offset / max(radius, 1e-9)] / CONVEX_TOL), axis=0, return_index=True)
+    n, offset = n[np.sort(first)], offset[np.sort(first)]
+    if len(n) < 4:
+        raise ValueError(f"{name}: rigid-object penetration needs a closed convex mesh, got {len(n)} face planes")
+    outside = v @ n.T - offset  # (N, P): <= 0 for every vertex of a convex mesh
+    if outside.max() > tol:
+        worst = int(np.argmax(outside.max(axis=1)))
+        raise ValueError(f"{name}: rigid-object penetration assumes a closed convex mesh with outward faces; "
+                         f"vertex {worst} lies {outside.max() * 1e3:.3f} mm outside a face plane")
+    return n, offset, radius
+
+
+def convex_depth(x: np.ndarray, pos: np.ndarray, rot: np.ndarray,
+                 planes: tuple[np.ndarray, np.ndarray, float]) -> np.ndarray:
+    """(T,) deepest penetration [m] of points x (T, N, 3) into a convex body at world pose pos (T, 3),
+    rot (T, 3, 3) (rest frame -> world), -inf where no point is inside.
+
+    The depth of p inside a convex polytope is its distance to the nearest face plane,
+    -max_f (n_f . p_local - offset_f); only points within the body's bounding ball are evaluated.
+    """
+    normals, offsets, radius = planes
+    T, N = x.shape[:2]
+    out = np.full(T, -np.inf)
+    if N == 0 or len(normals) == 0:
+        return out
+    frames = max(1, CHUNK_ELEMENTS // N)
+    rows = max(1, CHUNK_ELEMENTS // len(normals))
+    for t0 in range(0, T, frames):
+        d = np.asarray(x[t0:t0 + frames], np.float64) - pos[t0:t0 + frames, None]  # (t, N, 3)
+        t, i = np.nonzero(np.einsum("tni,tni->tn", d, d) <= radius * radius)
+        if not len(t):
+            continue
+        local = np.einsum("pi,pij->pj", d[t, i], rot[t0 + t])  # R^T d, rows
+        for p0 in range(0, len(t), rows):
+            depth = -(local[p0:p0 + rows] @ normals.T - offsets).max(axis=1)
+            np.maximum.at(out, t0 + t[p0:p0 + rows], depth)
+    return out
+
+
+def rigid_frames(rest: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Best-fit rigid poses (Kabsch, per frame) mapping rest vertices (N, 3) onto x (T, N, 3):
+    positions (T, 3) of the rest origin and rotations (T, 3, 3), x ~ rest @ R^T + pos."""
+    rest = np.asarray(rest, np.float64)
+    x = np.asarray(x, np.float64)
+    rc, xc = rest.mean(axis=0), x.mean(axis=1)
+    h = np.einsum("ni,tnj->tij", rest - rc, x - xc[:, None])
+    u, _, vt = np.linalg.svd(h)
+    v, ut = vt.transpose(0, 2, 1), u.transpose(0, 2, 1)
+    flip = np.where(np.linalg.det(v @ ut) < 0, -1.0, 1.0)  # no reflections
+    v[:, :, 2] *= flip[:, None]
+    rot = v @ ut
+    return xc - rot @ rc, rot
+
+
+def quat_matrices(quat: np.ndarray) -> np.ndarray:
+    """Rotation matrices (..., 3, 3) of xyzw quaternions (..., 4)."""
+    q = np.asarray(quat, np.float64)
+    cols = quat_rotate(q[..., None, :], np.eye(3))  # (..., 3 axes, 3): the rotated basis vectors
+    return np.swapaxes(cols, -1, -2)
+
+
+def rigid_poses(scene: Scene, ep: Episode) -> list[tuple[str, ObjectMesh, np.ndarray, np.ndarray]]:
+    """(name, rest mesh, pos (T, 3), rot (T, 3, 3)) of every rigid body the cloth may touch: predicted
+    rigid objects (fitted to their rows of x) and held objects (their link_poses column `held_<object>`).
+    A held object that is also predicted (a hand-off) is skipped: its rows of x follow the held pose
+    while it is held, so the fitted pose covers it."""
+    out = []
+    slices = scene.vertex_slices()
+    for name, mesh in scene.objects.items():
+        if scene.object_kinds[name] == "rigid":
+            pos, rot = rigid_frames(mesh.vertices, ep.x[:, slices[name]])
+            out.append((name, mesh, pos, rot))
+    for body, held in scene.held.items():
+        name = body.removeprefix("held_")
+        if name in scene.objects:
+            continue
+        pose = np.asarray(ep.link_poses[:, scene.link_names.index(body)], np.float64)
+        out.append((body, held.mesh, pose[:, :3], quat_matrices(pose[:, 3:])))
+    return out
+
+
 def penetration(scene: Scene, ep: Episode, cfg: ValidateConfig) -> int | None:
-    """First frame with a cloth vertex deeper than penetration_tol_m inside the table or a robot link box."""
+    """First frame with a cloth vertex deeper than penetration_tol_m inside the table, a robot link box
+    or a rigid object (predicted or held; assumed convex, see convex_planes)."""
     x = ep.x[:, cloth_rows(scene)].astype(np.float64)
-    T = len(x)
+    if x.shape[1] == 0:
+        return None
     table_c = np.asarray(scene.table.center_m, np.float64)
     table_q = np.array([0.0, 0.0, 0.0, 1.0])
     depth_table = -box_signed_distance(x, table_c, table_q, np.asarray(scene.table.half_extents_m, np.float64))
     centre, quat, half = robot_boxes(scene, ep.link_poses)
     depth_robot = -_min_box_distance(x, centre, quat, half)
-    bad = np.maximum(depth_table, depth_robot) > cfg.penetration_tol_m
-    return _first(bad.any(axis=1)) if T else None
+    deepest = np.maximum(depth_table, depth_robot).max(axis=1)
+    for name, mesh, pos, rot in rigid_poses(scene, ep):
+        deepest = np.maximum(deepest, convex_depth(x, pos, rot, convex_planes(mesh.vertices, mesh.faces, name)))
+    return _first(deepest > cfg.penetration_tol_m)
 
 
 def self_intersection(scene: Scene, ep: Episode, cfg: ValidateConfig) -> int | None:

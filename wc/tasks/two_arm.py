@@ -1,0 +1,103 @@
+"""Two-arm tasks:
+
+- lift_two_arms (9): each gripper pinches the handle nearer it; both lift together;
+- support (14): the right gripper lifts the bag by its handle; the closed left gripper comes in
+  horizontally under the hanging bag and pushes up into it (amplitude = the push);
+- load_and_lift (15): a sphere rests inside the bag (two predicted objects); both arms lift it by
+  the handles.
+
+Cells and speeds as for the one-arm handle tasks.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from wc.dynamics import ObjectState
+from wc.scene.scene import Scene
+from wc.tasks.bag_geometry import bag_rows, lowest_height
+from wc.tasks.base import EpisodeSpec, register_task
+from wc.tasks.lift_handle import HandleConfig, HandleTask, hover_action, upright_bag
+from wc.tasks.motion import ArmProgram, compose, home_separation, tool_rotation
+
+
+@dataclass(frozen=True)
+class SupportConfig(HandleConfig):
+    lift_m: float = 0.15  # right-arm lift before the left arm comes in
+    support_start_height_m: float = 0.03  # left TCP height above the table when it slides in
+    support_reach_m: float = 0.08  # horizontal travel of the left gripper towards the bag
+
+
+@dataclass(frozen=True)
+class LoadConfig(HandleConfig):
+    sphere_clearance_m: float = 0.005  # the sphere's lowest point above the bag's bottom at the start
+
+
+class TwoHandleTask(HandleTask):
+    """Both arms pinch their handles, then lift together by the amplitude."""
+
+    def settle_action(self, scene: Scene, spec: EpisodeSpec, initial: ObjectState) -> np.ndarray:
+        targets = [(side, *self._grasp(scene, initial.x, spec, side)[::3]) for side in ("left", "right")]
+        return hover_action(scene, self.common, targets, self.name)
+
+    def actions(self, scene, settled, spec, start, frame_dt_s) -> np.ndarray:
+        grasps = [self.approach(scene, settled, spec, start, side) for side in ("left", "right")]
+        together = max(g[0].duration for g in grasps)
+        for program, point, y, away in grasps:
+            program.hold_until(together)
+            self.lift(program, scene, point, y, away, spec.amplitude, spec.speed)
+        ends = max(g[0].duration for g in grasps)
+        for program, *_ in grasps:
+            program.hold_until(ends).hold(self.cfg.hold_s)
+        return compose(scene, start, [g[0] for g in grasps], frame_dt_s, self.common.ik, self.name)
+
+    def check(self, scene: Scene, spec: EpisodeSpec, x: np.ndarray, action: np.ndarray) -> str | None:
+        """'not_lifted' unless every predicted object ends success_lift_m above the table."""
+        low = min(lowest_height(scene, x[-1:], name)[0] for name in scene.objects)
+        return None if low >= self.cfg.success_lift_m else "not_lifted"
+
+
+@register_task("lift_two_arms", HandleConfig)
+class LiftTwoArms(TwoHandleTask):
+    pass
+
+
+@register_task("load_and_lift", LoadConfig)
+class LoadAndLift(TwoHandleTask):
+    objects = ("bag", "sphere")
+
+    def initial_state(self, scene: Scene, spec: EpisodeSpec, rng: np.random.Generator) -> ObjectState:
+        bag = upright_bag(scene, self.common, self.cell_values(spec.cell)["yaw_bins_deg"], rng).x
+        bottom = bag[scene.objects["bag"].groups["bottom"]]
+        sphere = scene.objects["sphere"].vertices
+        centre = bottom.mean(0) + np.array([0.0, 0.0, self.cfg.sphere_clearance_m - sphere[:, 2].min()])
+        x = np.concatenate([bag, sphere + centre]).astype(np.float32)
+        return ObjectState(x, np.zeros_like(x))
+
+
+@register_task("support", SupportConfig)
+class Support(HandleTask):
+    def settle_action(self, scene: Scene, spec: EpisodeSpec, initial: ObjectState) -> np.ndarray:
+        return hover_action(scene, self.common, [("right", *self._grasp(scene, initial.x, spec)[::3])], self.name)
+
+    def actions(self, scene, settled, spec, start, frame_dt_s) -> np.ndarray:
+        cfg = self.cfg
+        right, point, y, away = self.approach(scene, settled, spec, start)
+        top = self.lift(right, scene, point, y, away, cfg.lift_m, spec.speed)
+        # the bag hangs below the pinch: slide the closed left gripper in under it, then push up
+        under = np.array([top[0], top[1], scene.table.top_z + cfg.support_start_height_m])
+        inward = np.array([1.0, 0.0, 0.0]) if under[0] > scene.left_base[0] else np.array([-1.0, 0.0, 0.0])
+        rot = tool_rotation(home_separation(scene, "left"), inward, 90.0)
+        left = ArmProgram(scene, "left", start).hold_until(right.duration)
+        left.move(under - cfg.support_reach_m * inward, rot, self.common.closed_m, speed=spec.speed)
+        left.move(under, speed=spec.speed).move(under + np.array([0.0, 0.0, spec.amplitude]), speed=spec.speed)
+        right.hold_until(left.duration)
+        right.hold(cfg.hold_s)
+        left.hold_until(right.duration)
+        return compose(scene, start, [left, right], frame_dt_s, self.common.ik, self.name)
+
+    def check(self, scene: Scene, spec: EpisodeSpec, x: np.ndarray, action: np.ndarray) -> str | None:
+        """'not_lifted' unless the bag ends off the table."""
+        return None if lowest_height(scene, x[-1:])[0] >= self.cfg.success_lift_m else "not_lifted"
