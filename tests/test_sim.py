@@ -44,7 +44,7 @@ def test_grasp_lift_release(setup):
     settled, actions = _lift_actions(scene, sim, task)
     release_frames = int(round(0.8 / cfg.frame_dt_s))
     opened = np.repeat(actions[-1:], release_frames, axis=0)
-    opened[:, 13] = np.linspace(actions[-1, 13], task.cfg.open_m, release_frames)
+    opened[:, 13] = np.linspace(actions[-1, 13], task.common.open_m, release_frames)
     x, v = sim.rollout(settled, np.concatenate([actions, opened]))
     table = scene.table.top_z
     lowest = x[..., 2].min(axis=1) - table
@@ -52,7 +52,7 @@ def test_grasp_lift_release(setup):
     assert np.isfinite(x).all() and np.isfinite(v).all()
     assert lowest[0] < 0.01, "the bag starts on the table"
     assert lowest[held_end] >= 0.05, f"held bag's lowest vertex only {lowest[held_end]:.3f} m above the table"
-    assert task.check(scene, x[: held_end + 1], actions) is None
+    assert task.check(scene, EpisodeSpec("lift_handle", 0, 0, 0.08, 0.17), x[: held_end + 1], actions) is None
     assert lowest[-1] < 0.01, f"released bag did not fall back (lowest vertex {lowest[-1]:.3f} m)"
     assert x[-1, :, 2].max() < x[held_end, :, 2].max() - 0.05
 

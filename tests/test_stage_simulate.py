@@ -13,16 +13,18 @@ from wc.config import ParamsError, read_params
 from wc.data.store import TrajectoryStore
 
 ROOT = Path(__file__).resolve().parents[1]
-SHORT = ["agent.episodes_per_task=1", "tasks.lift_handle.hold_s=0.2", "sim.settle_s=0.2"]
+SHORT = ["agent.tasks=[lift_handle]", "agent.episodes_per_task=1", "agent.max_attempts_per_task=1",
+         "tasks.lift_handle.hold_s=0.2", "sim.settle_s=0.2"]
 
 
 def _run(tmp_path: Path, overrides: list[str], out: Path | None = None):
     out = out or tmp_path / "raw.zarr"
-    return simulate(read_params(ROOT / "params.yaml", SHORT + overrides), out, tmp_path / "simulate.json")
+    return simulate(read_params(ROOT / "params.yaml", SHORT + overrides), out, tmp_path / "simulate.json",
+                    tmp_path / "memory.json")
 
 
 def _no_output(tmp_path: Path) -> None:
-    leftovers = [p.name for p in tmp_path.iterdir() if p.name != "blocker"]
+    leftovers = [p.name for p in tmp_path.iterdir() if p.name not in ("blocker", "memory.json")]
     assert leftovers == [], f"partial output left behind: {leftovers}"
 
 
@@ -49,6 +51,9 @@ def test_smoke_default_params(tmp_path):
     assert written["solver_steps"] > 0 and written["simulated_s_per_wall_s"] > 0
     assert written["params_hash"] == store.attrs["params_hash"]
     assert written["tasks"]["lift_handle"]["cells_visited"] == 1
+    memory = json.loads((tmp_path / "memory.json").read_text())["outcomes"]
+    assert [(o["task"], o["failure"]) for o in memory] == [("lift_handle", attrs["first_failure"])]
+    assert attrs["objects"] == ["bag"] and attrs["links"] == store.link_names
 
 
 @pytest.mark.parametrize("overrides, message", [
@@ -66,7 +71,7 @@ def test_missing_params_key_fails_without_output(tmp_path):
     params = read_params(ROOT / "params.yaml", SHORT)
     del params["sim"]["dt_s"]
     with pytest.raises(ParamsError, match=r"missing key sim\.dt_s"):
-        simulate(params, tmp_path / "raw.zarr", tmp_path / "simulate.json")
+        simulate(params, tmp_path / "raw.zarr", tmp_path / "simulate.json", tmp_path / "memory.json")
     _no_output(tmp_path)
 
 

@@ -42,8 +42,8 @@ class Planner(Protocol):
         """The next episode of `task`; `seed` is its own, so proposals are reproducible."""
         ...
 
-    def record(self, spec: EpisodeSpec, failure: str | None) -> None:
-        """The verdict of a proposed episode: its first failing predicate, None if accepted."""
+    def record(self, spec: EpisodeSpec, failure: str | None, frame: int | None = None) -> None:
+        """The verdict of a proposed episode: its first failing predicate (and frame), None if accepted."""
         ...
 
     def coverage(self, task: Task) -> dict[str, int]:
@@ -88,13 +88,13 @@ class CoveragePlanner:
         self._pending[(task.name, cell)] += 1
         return EpisodeSpec(task.name, seed, cell, speed, amplitude)
 
-    def record(self, spec: EpisodeSpec, failure: str | None) -> None:
+    def record(self, spec: EpisodeSpec, failure: str | None, frame: int | None = None) -> None:
         slot = (spec.task, spec.cell)
         if self._pending[slot] > 0:
             self._pending[slot] -= 1
         if failure is None:
             self.accepted[slot] += 1
-        self.memory.record(self.task_key(spec.task), spec, failure)  # the caller saves the memory
+        self.memory.record(self.task_key(spec.task), spec, failure, frame)  # the caller saves the memory
 
     def coverage(self, task: Task) -> dict[str, int]:
         """Cells with at least one episode proposed / accepted, this run and over all runs

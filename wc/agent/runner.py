@@ -1,22 +1,36 @@
-"""The data-generation agent: Reset -> Execute -> Validate -> Accept, several episodes per batch."""
+"""The data-generation agent: Reset -> Execute -> Validate -> Accept, `sim.worlds` episodes per batch.
+
+Reset samples the initial state, lets it settle under the robot's start posture and prepares frame
+0; Execute rolls the open-loop action program out in the Newton simulator; Validate runs the named
+physical and visual checks (wc.validate) and then the task's own check; the first failure is
+logged with its frame and fed back to the planner, which remembers it across runs.
+"""
 
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
 from wc.agent.planner import Planner
-from wc.scene.scene import Scene
+from wc.dynamics import ObjectState
+from wc.scene.config import SceneConfig
+from wc.scene.scene import Scene, build_scene
+from wc.sim.config import SimConfig
+from wc.sim.kinematic import pose_twists, transform_points
 from wc.sim.newton_sim import NewtonSimulator
 from wc.tasks.base import EpisodeSpec, InfeasibleEpisode, Task
+from wc.tasks.motion import ARM_COLUMNS
+from wc.validate import ValidateConfig, first_failure
 
 
 @dataclass(frozen=True)
 class AgentConfig:
     tasks: tuple[str, ...]  # task programs to run, by registered name
-    episodes_per_task: int
+    episodes_per_task: int  # accepted episodes wanted per task
+    max_attempts_per_task: int  # give up on a task after this many episodes
     seed: int  # stage seed; episode seeds derive from it
 
     def validate(self) -> None:
@@ -24,19 +38,56 @@ class AgentConfig:
             raise ValueError("tasks must name at least one task")
         if self.episodes_per_task < 1:
             raise ValueError(f"episodes_per_task must be >= 1, got {self.episodes_per_task}")
+        if self.max_attempts_per_task < self.episodes_per_task:
+            raise ValueError(f"max_attempts_per_task ({self.max_attempts_per_task}) must be >= "
+                             f"episodes_per_task ({self.episodes_per_task})")
 
 
 @dataclass
 class EpisodeRecord:
-    """One executed episode; arrays are None when it could not be planned (first_failure 'unreachable')."""
+    """One executed episode; arrays are None when it could not be planned (first_failure 'unreachable')
+    or blew up before it could be stored."""
 
     spec: EpisodeSpec
     first_failure: str | None
-    x: np.ndarray | None = None  # (T, N, 3)
+    failure_frame: int | None = None
+    x: np.ndarray | None = None  # (T, N, 3), objects in `layout['objects']` order
     v: np.ndarray | None = None
     action: np.ndarray | None = None  # (T, 14)
-    link_poses: np.ndarray | None = None  # (T, L, 7)
+    link_poses: np.ndarray | None = None  # (T, L, 7), columns `layout['links']`
     env_poses: np.ndarray | None = None  # (T, E, 7)
+    layout: dict[str, Any] = field(default_factory=dict)  # store attrs: objects, links, held, handoff
+
+
+@dataclass
+class TaskWorld:
+    """A task's scenes and simulators. `scene` is what is recorded (every object the task predicts,
+    plus what the robot holds); `sim` simulates it, except that objects handed off from the gripper
+    are held in `sim` and predicted in `free_sim` from the release frame on."""
+
+    task: Task
+    scene: Scene
+    sim_scene: Scene
+    sim: NewtonSimulator
+    free_sim: NewtonSimulator | None = None
+
+    @property
+    def solver_steps(self) -> int:
+        return self.sim.solver_steps + (self.free_sim.solver_steps if self.free_sim else 0)
+
+
+def build_task_world(scene_cfg: SceneConfig, sim_cfg: SimConfig, task: Task) -> TaskWorld:
+    held = task.held()
+    handoff = tuple(getattr(task, "handoff", ()))
+    unknown = [o for o in handoff if o not in held or o not in task.objects]
+    if unknown:
+        raise ValueError(f"task {task.name}: handoff objects {unknown} must be both held and predicted")
+    scene = build_scene(scene_cfg, task.objects, held=held)
+    if not handoff:
+        return TaskWorld(task, scene, scene, NewtonSimulator(scene, sim_cfg))
+    sim_scene = build_scene(scene_cfg, [o for o in task.objects if o not in handoff], held=held)
+    free_scene = build_scene(scene_cfg, task.objects)
+    return TaskWorld(task, scene, sim_scene, NewtonSimulator(sim_scene, sim_cfg), NewtonSimulator(free_scene, sim_cfg))
 
 
 def episode_seed(stage_seed: int, task_index: int, episode_index: int) -> int:
@@ -44,50 +95,150 @@ def episode_seed(stage_seed: int, task_index: int, episode_index: int) -> int:
     return int(np.random.SeedSequence([stage_seed, task_index, episode_index]).generate_state(1)[0])
 
 
-def first_failure(scene: Scene, task: Task, x: np.ndarray, v: np.ndarray, action: np.ndarray) -> str | None:
-    """Name of the first failing check of a simulated episode, or None if it passes."""
-    if not (np.isfinite(x).all() and np.isfinite(v).all()):
-        return "non_finite"
-    check = getattr(task, "check", None)
-    return check(scene, x, action) if check is not None else None
-
-
 def pad_to_length(actions: np.ndarray, length: int) -> np.ndarray:
     """Hold the last action until the episode has `length` frames."""
     return np.concatenate([actions, np.repeat(actions[-1:], length - len(actions), axis=0)])
 
 
-def run_episodes(scene: Scene, task: Task, task_index: int, sim: NewtonSimulator, planner: Planner,
-                 count: int, stage_seed: int, on_frame: Callable[[], None] | None = None) -> Iterator[EpisodeRecord]:
-    """Simulate `count` episodes of one task, `sim.worlds` at a time, yielding each with its verdict."""
-    for first in range(0, count, sim.worlds):
-        specs = [planner.propose(task, episode_seed(stage_seed, task_index, i))
-                 for i in range(first, min(count, first + sim.worlds))]
-        planned = []
-        for spec in specs:  # Reset
-            try:
-                initial = task.initial_state(scene, spec, np.random.default_rng(spec.seed))
-                planned.append((spec, initial, task.settle_action(scene, spec, initial)))
-            except InfeasibleEpisode:
-                planner.record(spec, "unreachable")
-                yield EpisodeRecord(spec, "unreachable")
-        if not planned:
-            continue
-        settled = sim.settle([p[1] for p in planned], [p[2] for p in planned], sim.cfg.settle_s)
-        runnable = []
-        for (spec, _, held), state in zip(planned, settled):
-            try:
-                runnable.append((spec, state, task.actions(scene, state, spec, held, sim.cfg.frame_dt_s)))
-            except InfeasibleEpisode:
-                planner.record(spec, "unreachable")
-                yield EpisodeRecord(spec, "unreachable")
+def release_frame(task: Task, actions: np.ndarray) -> int:
+    """First frame at which the gripper holding the handed-off objects starts to open."""
+    link = task.held()[task.handoff[0]][0]
+    column = ARM_COLUMNS[link.split("_", 1)[0]][1]
+    opening = np.flatnonzero(actions[:, column] > actions[0, column] + 1e-6)
+    if not len(opening):
+        raise InfeasibleEpisode(f"{task.name}: the gripper holding {task.handoff} never opens")
+    return int(opening[0])
+
+
+def hold_until(actions: np.ndarray, frame: int, release: int) -> np.ndarray:
+    """Insert holds before `frame` so the release happens at frame `release`."""
+    return np.concatenate([actions[:frame], np.repeat(actions[frame - 1:frame], release - frame, axis=0),
+                           actions[frame:]])
+
+
+def layout_attrs(world: TaskWorld, release: int | None) -> dict[str, Any]:
+    scene = world.scene
+    attrs: dict[str, Any] = {"objects": list(scene.objects), "links": list(scene.link_names)}
+    if scene.held:
+        attrs["held"] = {h.mesh.name: {"link": h.link, "local_pose": h.local_pose.tolist()}
+                         for h in scene.held.values()}
+    if release is not None:
+        attrs["handoff"] = {name: release for name in world.task.handoff}
+    return attrs
+
+
+def _held_state(scene: Scene, name: str, poses: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices and velocities (T, M, 3) of a held object posed by link_poses (T, L, 7)."""
+    column = scene.link_names.index(f"held_{name}")
+    pose = poses[:, column]
+    local = scene.held[f"held_{name}"].mesh.vertices
+    x = transform_points(pose, local)
+    twist = pose_twists(np.concatenate([pose[:1], pose[:-1]]), pose, dt)
+    r = x - pose[:, None, :3]
+    return x, twist[:, None, :3] + np.cross(twist[:, None, 3:], r)
+
+
+def _merge(scene: Scene, parts: dict[str, np.ndarray]) -> np.ndarray:
+    return np.concatenate([parts[name] for name in scene.objects], axis=-2)
+
+
+def execute(world: TaskWorld, states: list[ObjectState], actions: list[np.ndarray],
+             on_frame: Callable[[], None] | None) -> tuple[list[tuple[np.ndarray, np.ndarray]], list[np.ndarray], int | None]:
+    """Roll out a batch; returns [(x, v)] in the recording layout, the (possibly re-timed) actions and
+    the release frame of a hand-off (None without one)."""
+    task, sim = world.task, world.sim
+    if world.free_sim is None:
+        length = max(len(a) for a in actions)
+        actions = [pad_to_length(a, length) for a in actions]
+        return sim.rollout_batch(states, actions, on_frame=on_frame), actions, None
+    releases = [release_frame(task, a) for a in actions]
+    release = max(releases)
+    actions = [hold_until(a, k, release) for a, k in zip(actions, releases)]
+    length = max(len(a) for a in actions)
+    actions = [pad_to_length(a, length) for a in actions]
+    before = sim.rollout_batch(states, [a[:release + 1] for a in actions], on_frame=on_frame)
+    dt = sim.cfg.frame_dt_s
+    poses = [world.scene.link_poses(a) for a in actions]
+    held = [{name: _held_state(world.scene, name, p, dt) for name in task.handoff} for p in poses]
+    rows = world.sim_scene.vertex_slices()
+    free_scene = world.free_sim.scene
+    starts = []
+    for (x, v), h in zip(before, held):
+        parts_x = {n: x[release, r] for n, r in rows.items()} | {n: hx[release] for n, (hx, _) in h.items()}
+        parts_v = {n: v[release, r] for n, r in rows.items()} | {n: hv[release] for n, (_, hv) in h.items()}
+        starts.append(ObjectState(_merge(free_scene, parts_x), _merge(free_scene, parts_v)))
+    after = world.free_sim.rollout_batch(starts, [a[release:] for a in actions], on_frame=on_frame)
+    out = []
+    for (x, v), h, (xb, vb) in zip(before, held, after):
+        parts_x = {n: x[:release, r] for n, r in rows.items()} | {n: hx[:release] for n, (hx, _) in h.items()}
+        parts_v = {n: v[:release, r] for n, r in rows.items()} | {n: hv[:release] for n, (_, hv) in h.items()}
+        out.append((np.concatenate([_merge(world.scene, parts_x), xb]).astype(np.float32),
+                    np.concatenate([_merge(world.scene, parts_v), vb]).astype(np.float32)))
+    return out, actions, release
+
+
+def reset_batch(world: TaskWorld, specs: list[EpisodeSpec]
+                ) -> tuple[list[tuple[EpisodeSpec, ObjectState, np.ndarray]], list[EpisodeSpec]]:
+    """Reset: sample, settle (one simulator batch) and prepare each episode, then plan its actions.
+    Returns the runnable (spec, frame-0 state, actions (T, 14)) and the specs that cannot be planned."""
+    task, scene, sim = world.task, world.sim_scene, world.sim
+    planned, unreachable = [], []
+    for spec in specs:
+        rng = np.random.default_rng(spec.seed)
+        try:
+            initial = task.initial_state(scene, spec, rng)
+            planned.append((spec, rng, initial, task.settle_action(scene, spec, initial)))
+        except InfeasibleEpisode:
+            unreachable.append(spec)
+    settled = [p[2] for p in planned]
+    if planned and task.settle:
+        settled = sim.settle(settled, [p[3] for p in planned], sim.cfg.settle_s)
+    runnable = []
+    for (spec, rng, _, start), state in zip(planned, settled):
+        try:
+            state = task.prepare(scene, state, spec, rng)
+            runnable.append((spec, state, task.actions(scene, state, spec, start, sim.cfg.frame_dt_s)))
+        except InfeasibleEpisode:
+            unreachable.append(spec)
+    return runnable, unreachable
+
+
+def judge(world: TaskWorld, spec: EpisodeSpec, x: np.ndarray, v: np.ndarray, action: np.ndarray,
+          link_poses: np.ndarray, cfg: ValidateConfig, frame_dt_s: float) -> tuple[str, int] | None:
+    """First failing check: the physical and visual predicates, then the task's own verdict (last frame)."""
+    failure = first_failure(world.scene, x, v, action, link_poses, cfg, frame_dt_s=frame_dt_s)
+    if failure is not None:
+        return failure
+    verdict = world.task.check(world.scene, spec, x, action)
+    return (verdict, len(x) - 1) if verdict else None
+
+
+def run_episodes(world: TaskWorld, planner: Planner, task_index: int, wanted: int, max_attempts: int,
+                 stage_seed: int, validate_cfg: ValidateConfig,
+                 on_frame: Callable[[], None] | None = None) -> Iterator[EpisodeRecord]:
+    """Simulate episodes of one task, `sim.worlds` at a time, until `wanted` are accepted or
+    `max_attempts` were tried; yields each with its verdict."""
+    task, scene, sim = world.task, world.sim_scene, world.sim
+    accepted = attempts = 0
+    while accepted < wanted and attempts < max_attempts:
+        batch = min(sim.worlds, wanted - accepted, max_attempts - attempts)
+        specs = [planner.propose(task, episode_seed(stage_seed, task_index, attempts + i)) for i in range(batch)]
+        attempts += batch
+        runnable, unreachable = reset_batch(world, specs)
+        for spec in unreachable:
+            planner.record(spec, "unreachable")
+            yield EpisodeRecord(spec, "unreachable")
         if not runnable:
             continue
-        length = max(len(r[2]) for r in runnable)
-        actions = [pad_to_length(r[2], length) for r in runnable]
-        results = sim.rollout_batch([r[1] for r in runnable], actions, on_frame=on_frame)  # Execute
-        env = np.repeat(scene.env_poses()[None], length, axis=0)
+        results, actions, release = execute(world, [r[1] for r in runnable], [r[2] for r in runnable], on_frame)
+        env = np.repeat(scene.env_poses()[None], len(actions[0]), axis=0)
         for (spec, _, _), act, (x, v) in zip(runnable, actions, results):
-            failure = first_failure(scene, task, x, v, act)  # Validate
-            planner.record(spec, failure)
-            yield EpisodeRecord(spec, failure, x, v, act, scene.link_poses(act), env)  # Accept (or log)
+            poses = world.scene.link_poses(act)
+            failure = judge(world, spec, x, v, act, poses, validate_cfg, sim.cfg.frame_dt_s)  # Validate
+            name, frame = failure if failure else (None, None)
+            planner.record(spec, name, frame)
+            accepted += name is None
+            if name == "non_finite":  # nothing storable
+                yield EpisodeRecord(spec, name, frame)
+                continue
+            yield EpisodeRecord(spec, name, frame, x, v, act, poses, env, layout_attrs(world, release))  # Accept

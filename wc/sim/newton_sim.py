@@ -165,6 +165,10 @@ class NewtonSimulator:
                 s.particle_qd.assign(qd.reshape(-1, 3))
             s.body_q.assign(body_q.reshape(-1, 7))
             s.body_qd.assign(body_qd.reshape(-1, 6))
+        # a new episode is a discontinuity: forget the solver's pose / contact history (a rigid body
+        # moved since the last step would otherwise get the jump as velocity)
+        self.solver.reset(self.state_0, flags=0)
+        self.pipeline.reset_contact_matching()
 
     def _read_state(self) -> tuple[np.ndarray, np.ndarray]:
         """Concatenated object vertices of every world: x, v each (W, N, 3), not checked finite."""

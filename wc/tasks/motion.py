@@ -142,7 +142,7 @@ def compose(scene: Scene, start_action: np.ndarray, programs: list[ArmProgram], 
         joints, opening_col = ARM_COLUMNS[program.side]
         q, row = program.start_q, 1
         for leg, (points, rots, openings) in enumerate(program.sample(times)):
-            q_leg, pos_err, rot_err = solve_tool_ik(
+            q_leg, pos_err, rot_err = solve_tool_ik(  # one batch per leg, warm-started from the last leg
                 torch.as_tensor(points, dtype=torch.float32), torch.as_tensor(rots, dtype=torch.float32),
                 torch.as_tensor(np.repeat(q[None], len(points), axis=0)),
                 torch.as_tensor(arm_base(scene, program.side)), iterations=ik.iterations)
@@ -156,15 +156,22 @@ def compose(scene: Scene, start_action: np.ndarray, programs: list[ArmProgram], 
     return actions
 
 
-def reach(scene: Scene, side: str, position: np.ndarray, rotation: np.ndarray, ik: IKSettings, task: str,
-          q_init: np.ndarray | None = None) -> np.ndarray:
-    """Joint angles (6,) putting an arm's TCP at (position, rotation), or InfeasibleEpisode."""
-    q0 = np.asarray(scene.home_q if q_init is None else q_init, np.float32)
+def solve_pose(scene: Scene, side: str, position: np.ndarray, rotation: np.ndarray, q_init: np.ndarray,
+               ik: IKSettings, failure: str) -> np.ndarray:
+    """Joint angles (6,) putting an arm's TCP at (position, rotation) from q_init, or InfeasibleEpisode."""
     q, pos_err, rot_err = solve_tool_ik(
         torch.as_tensor(np.asarray(position, np.float32)[None]),
-        torch.as_tensor(np.asarray(rotation, np.float32)[None]), torch.as_tensor(q0[None]),
+        torch.as_tensor(np.asarray(rotation, np.float32)[None]),
+        torch.as_tensor(np.asarray(q_init, np.float32)[None]),
         torch.as_tensor(arm_base(scene, side)), iterations=ik.iterations)
     if float(pos_err.max()) > ik.tolerance_m or float(rot_err.max()) > ik.tolerance_rad:
-        raise InfeasibleEpisode(f"{task}: {side} arm cannot reach {np.round(position, 3).tolist()} "
-                                f"(IK error {float(pos_err.max()):.4f} m, {float(rot_err.max()):.3f} rad)")
+        raise InfeasibleEpisode(f"{failure} (IK error {float(pos_err.max()):.4f} m, {float(rot_err.max()):.3f} rad "
+                                f"at {np.round(position, 3).tolist()})")
     return q.numpy()[0]
+
+
+def reach(scene: Scene, side: str, position: np.ndarray, rotation: np.ndarray, ik: IKSettings, task: str,
+          q_init: np.ndarray | None = None) -> np.ndarray:
+    """Joint angles (6,) putting an arm's TCP at (position, rotation), from home unless q_init."""
+    q0 = scene.home_q if q_init is None else q_init
+    return solve_pose(scene, side, position, rotation, q0, ik, f"{task}: the {side} arm cannot reach its target")

@@ -28,6 +28,7 @@ class SupportConfig(HandleConfig):
     lift_m: float = 0.15  # right-arm lift before the left arm comes in
     support_start_height_m: float = 0.03  # left TCP height above the table when it slides in
     support_reach_m: float = 0.08  # horizontal travel of the left gripper towards the bag
+    support_tilt_deg: float = 60.0  # left tool axis from vertical (90 = horizontal)
 
 
 @dataclass(frozen=True)
@@ -79,22 +80,34 @@ class LoadAndLift(TwoHandleTask):
 
 @register_task("support", SupportConfig)
 class Support(HandleTask):
-    def settle_action(self, scene: Scene, spec: EpisodeSpec, initial: ObjectState) -> np.ndarray:
-        return hover_action(scene, self.common, [("right", *self._grasp(scene, initial.x, spec)[::3])], self.name)
-
-    def actions(self, scene, settled, spec, start, frame_dt_s) -> np.ndarray:
+    def _support(self, scene: Scene, x: np.ndarray, spec: EpisodeSpec) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The left gripper's staging point (low, beside the bag's footprint), the point under the
+        lifted bag and its tool rotation: the bag hangs below the right pinch once lifted."""
         cfg = self.cfg
-        right, point, y, away = self.approach(scene, settled, spec, start)
-        top = self.lift(right, scene, point, y, away, cfg.lift_m, spec.speed)
-        # the bag hangs below the pinch: slide the closed left gripper in under it, then push up
+        point, y, away, _ = self._grasp(scene, x, spec)
+        top = point + np.array([0.0, 0.0, cfg.lift_m]) - cfg.lift_retract_m * away
         under = np.array([top[0], top[1], scene.table.top_z + cfg.support_start_height_m])
         inward = np.array([1.0, 0.0, 0.0]) if under[0] > scene.left_base[0] else np.array([-1.0, 0.0, 0.0])
-        rot = tool_rotation(home_separation(scene, "left"), inward, 90.0)
-        left = ArmProgram(scene, "left", start).hold_until(right.duration)
-        left.move(under - cfg.support_reach_m * inward, rot, self.common.closed_m, speed=spec.speed)
+        footprint = (bag_rows(scene, x) - under) @ inward
+        staging = under + (footprint.min() - cfg.support_reach_m) * inward
+        return staging, under, tool_rotation(home_separation(scene, "left"), inward, cfg.support_tilt_deg)
+
+    def settle_action(self, scene: Scene, spec: EpisodeSpec, initial: ObjectState) -> np.ndarray:
+        staging, _, rot = self._support(scene, initial.x, spec)
+        action = hover_action(scene, self.common, [("right", *self._grasp(scene, initial.x, spec)[::3]),
+                                                   ("left", staging + self.common.start_height_m * rot[:, 2], rot)],
+                              self.name)
+        action[6] = self.common.closed_m
+        return action
+
+    def actions(self, scene, settled, spec, start, frame_dt_s) -> np.ndarray:
+        right, point, y, away = self.approach(scene, settled, spec, start)
+        self.lift(right, scene, point, y, away, self.cfg.lift_m, spec.speed)
+        staging, under, _ = self._support(scene, settled.x, spec)
+        left = ArmProgram(scene, "left", start).move(staging, seconds=right.duration)
         left.move(under, speed=spec.speed).move(under + np.array([0.0, 0.0, spec.amplitude]), speed=spec.speed)
         right.hold_until(left.duration)
-        right.hold(cfg.hold_s)
+        right.hold(self.cfg.hold_s)
         left.hold_until(right.duration)
         return compose(scene, start, [left, right], frame_dt_s, self.common.ik, self.name)
 
