@@ -138,8 +138,16 @@ def _held_state(scene: Scene, name: str, poses: np.ndarray, dt: float) -> tuple[
     return x, twist[:, None, :3] + np.cross(twist[:, None, 3:], r)
 
 
-def _merge(scene: Scene, parts: dict[str, np.ndarray]) -> np.ndarray:
-    return np.concatenate([parts[name] for name in scene.objects], axis=-2)
+def _assemble(scene: Scene, rows: dict[str, slice], simulated: tuple[np.ndarray, np.ndarray],
+              held: dict[str, tuple[np.ndarray, np.ndarray]], frames: int | slice
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """x, v at `frames` in `scene`'s object order, from simulated (x, v) with object rows `rows`
+    and the held objects' (x, v)."""
+    out = []
+    for k in range(2):
+        parts = {n: simulated[k][frames, r] for n, r in rows.items()} | {n: h[k][frames] for n, h in held.items()}
+        out.append(np.concatenate([parts[name] for name in scene.objects], axis=-2).astype(np.float32))
+    return out[0], out[1]
 
 
 def execute(world: TaskWorld, states: list[ObjectState], actions: list[np.ndarray],
@@ -162,18 +170,12 @@ def execute(world: TaskWorld, states: list[ObjectState], actions: list[np.ndarra
     held = [{name: _held_state(world.scene, name, p, dt) for name in task.handoff} for p in poses]
     rows = world.sim_scene.vertex_slices()
     free_scene = world.free_sim.scene
-    starts = []
-    for (x, v), h in zip(before, held):
-        parts_x = {n: x[release, r] for n, r in rows.items()} | {n: hx[release] for n, (hx, _) in h.items()}
-        parts_v = {n: v[release, r] for n, r in rows.items()} | {n: hv[release] for n, (_, hv) in h.items()}
-        starts.append(ObjectState(_merge(free_scene, parts_x), _merge(free_scene, parts_v)))
+    starts = [ObjectState(*_assemble(free_scene, rows, sim_xv, h, release)) for sim_xv, h in zip(before, held)]
     after = world.free_sim.rollout_batch(starts, [a[release:] for a in actions], on_frame=on_frame)
     out = []
-    for (x, v), h, (xb, vb) in zip(before, held, after):
-        parts_x = {n: x[:release, r] for n, r in rows.items()} | {n: hx[:release] for n, (hx, _) in h.items()}
-        parts_v = {n: v[:release, r] for n, r in rows.items()} | {n: hv[:release] for n, (_, hv) in h.items()}
-        out.append((np.concatenate([_merge(world.scene, parts_x), xb]).astype(np.float32),
-                    np.concatenate([_merge(world.scene, parts_v), vb]).astype(np.float32)))
+    for sim_xv, h, (xb, vb) in zip(before, held, after):
+        x, v = _assemble(world.scene, rows, sim_xv, h, slice(0, release))
+        out.append((np.concatenate([x, xb]), np.concatenate([v, vb])))
     return out, actions, release
 
 

@@ -102,6 +102,12 @@ def bag_bottom_centre(scene: Scene, x: np.ndarray) -> np.ndarray:
     return bag_rows(scene, x)[scene.objects["bag"].groups["bottom"]].mean(0)
 
 
+def ends_above(scene: Scene, x: np.ndarray, height_m: float, failure: str, names: tuple[str, ...] = ("bag",)
+               ) -> str | None:
+    """None if every named object's lowest vertex ends height_m above the table, else `failure`."""
+    return None if min(lowest_height(scene, x[-1:], n)[0] for n in names) >= height_m else failure
+
+
 def lowest_height(scene: Scene, x: np.ndarray, name: str = "bag") -> np.ndarray:
     """Height of an object's lowest vertex above the table top, per frame: x (T, N, 3) -> (T,)."""
     return x[:, scene.vertex_slices()[name], 2].min(axis=1) - scene.table.top_z

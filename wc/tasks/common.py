@@ -37,6 +37,10 @@ class CommonTaskConfig:
         if self.close_s <= 0 or self.ik_iterations < 1:
             raise ValueError("close_s and ik_iterations must be positive")
 
+    def bag_centre(self, rng: np.random.Generator) -> np.ndarray:
+        """The bag's initial xy centre, jittered uniformly by bag_jitter_m."""
+        return np.asarray(self.bag_center_xy_m) + rng.uniform(-1, 1, 2) * self.bag_jitter_m
+
     @property
     def ik(self) -> IKSettings:
         return IKSettings(self.ik_iterations, self.ik_tolerance_m, self.ik_tolerance_rad)

@@ -57,8 +57,8 @@ def idle(scene: Scene, start: np.ndarray, seconds: float, frame_dt_s: float) -> 
 
 def lying_bag(scene: Scene, common, roll_deg: float, rng: np.random.Generator) -> np.ndarray:
     """Bag vertices rolled by roll_deg (90 = on its front face) just above the table, jittered."""
-    centre = np.asarray(common.bag_center_xy_m) + rng.uniform(-1, 1, 2) * common.bag_jitter_m
-    return placed(scene.objects["bag"].vertices, 0.0, roll_deg, centre, scene.table.top_z + common.drop_height_m)
+    return placed(scene.objects["bag"].vertices, 0.0, roll_deg, common.bag_centre(rng),
+                  scene.table.top_z + common.drop_height_m)
 
 
 @register_task("bag_drop", BagDropConfig)
@@ -68,8 +68,7 @@ class BagDrop(TaskProgram):
 
     def initial_state(self, scene: Scene, spec: EpisodeSpec, rng: np.random.Generator) -> ObjectState:
         c = self.cell_values(spec.cell)
-        centre = np.asarray(self.common.bag_center_xy_m) + rng.uniform(-1, 1, 2) * self.common.bag_jitter_m
-        x = placed(scene.objects["bag"].vertices, c["yaw_bins_deg"], c["roll_bins_deg"], centre,
+        x = placed(scene.objects["bag"].vertices, c["yaw_bins_deg"], c["roll_bins_deg"], self.common.bag_centre(rng),
                    scene.table.top_z + spec.amplitude)
         v = np.zeros_like(x)
         v[:, 2] = -spec.speed

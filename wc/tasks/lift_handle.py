@@ -19,7 +19,7 @@ import numpy as np
 
 from wc.dynamics import ObjectState
 from wc.scene.scene import Scene
-from wc.tasks.bag_geometry import bag_rows, handle_grasp, lowest_height, placed
+from wc.tasks.bag_geometry import bag_rows, ends_above, handle_grasp, lowest_height, placed
 from wc.tasks.base import EpisodeSpec, register_task
 from wc.tasks.common import TaskProgram, check_range
 from wc.tasks.motion import ArmProgram, compose, reach, tool_rotation
@@ -115,8 +115,8 @@ class HandleTask(TaskProgram):
 
 def upright_bag(scene: Scene, common, yaw_deg: float, rng: np.random.Generator) -> ObjectState:
     """The bag standing on the table (a little above it), yawed, jittered in xy."""
-    centre = np.asarray(common.bag_center_xy_m) + rng.uniform(-1, 1, 2) * common.bag_jitter_m
-    x = placed(scene.objects["bag"].vertices, yaw_deg, 0.0, centre, scene.table.top_z + common.drop_height_m)
+    x = placed(scene.objects["bag"].vertices, yaw_deg, 0.0, common.bag_centre(rng),
+               scene.table.top_z + common.drop_height_m)
     return ObjectState(x, np.zeros_like(x))
 
 
@@ -145,7 +145,7 @@ class LiftHandle(HandleTask):
 
     def check(self, scene: Scene, spec: EpisodeSpec, x: np.ndarray, action: np.ndarray) -> str | None:
         """'not_lifted' unless the bag's lowest vertex is success_lift_m above the table at the end."""
-        return None if lowest_height(scene, x[-1:])[0] >= self.cfg.success_lift_m else "not_lifted"
+        return ends_above(scene, x, self.cfg.success_lift_m, "not_lifted")
 
 
 @register_task("place", PlaceConfig)
@@ -200,4 +200,4 @@ class Shake(HandleTask):
 
     def check(self, scene: Scene, spec: EpisodeSpec, x: np.ndarray, action: np.ndarray) -> str | None:
         """'dropped' unless the bag still hangs success_lift_m above the table at the end."""
-        return None if lowest_height(scene, x[-1:])[0] >= self.cfg.success_lift_m else "dropped"
+        return ends_above(scene, x, self.cfg.success_lift_m, "dropped")

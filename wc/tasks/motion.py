@@ -142,36 +142,31 @@ def compose(scene: Scene, start_action: np.ndarray, programs: list[ArmProgram], 
         joints, opening_col = ARM_COLUMNS[program.side]
         q, row = program.start_q, 1
         for leg, (points, rots, openings) in enumerate(program.sample(times)):
-            q_leg, pos_err, rot_err = solve_tool_ik(  # one batch per leg, warm-started from the last leg
-                torch.as_tensor(points, dtype=torch.float32), torch.as_tensor(rots, dtype=torch.float32),
-                torch.as_tensor(np.repeat(q[None], len(points), axis=0)),
-                torch.as_tensor(arm_base(scene, program.side)), iterations=ik.iterations)
-            if float(pos_err.max()) > ik.tolerance_m or float(rot_err.max()) > ik.tolerance_rad:
-                raise InfeasibleEpisode(f"{task}: the {program.side} arm cannot follow leg {leg} (IK error "
-                                        f"{float(pos_err.max()):.4f} m, {float(rot_err.max()):.3f} rad)")
-            q = q_leg.numpy()[-1]
-            actions[row:row + len(points), joints] = q_leg.numpy()
+            q_leg = solve_poses(scene, program.side, points, rots, q, ik,  # one batch per leg, warm-started
+                                f"{task}: the {program.side} arm cannot follow leg {leg}")
+            q = q_leg[-1]
+            actions[row:row + len(points), joints] = q_leg
             actions[row:row + len(points), opening_col] = openings
             row += len(points)
     return actions
 
 
-def solve_pose(scene: Scene, side: str, position: np.ndarray, rotation: np.ndarray, q_init: np.ndarray,
-               ik: IKSettings, failure: str) -> np.ndarray:
-    """Joint angles (6,) putting an arm's TCP at (position, rotation) from q_init, or InfeasibleEpisode."""
+def solve_poses(scene: Scene, side: str, positions: np.ndarray, rotations: np.ndarray, q_init: np.ndarray,
+                ik: IKSettings, failure: str) -> np.ndarray:
+    """Joint angles (K, 6) putting an arm's TCP at positions (K, 3) with rotations (K, 3, 3), every
+    pose warm-started from q_init (6,); InfeasibleEpisode(failure) if any misses the tolerances."""
     q, pos_err, rot_err = solve_tool_ik(
-        torch.as_tensor(np.asarray(position, np.float32)[None]),
-        torch.as_tensor(np.asarray(rotation, np.float32)[None]),
-        torch.as_tensor(np.asarray(q_init, np.float32)[None]),
+        torch.as_tensor(np.asarray(positions, np.float32)), torch.as_tensor(np.asarray(rotations, np.float32)),
+        torch.as_tensor(np.repeat(np.asarray(q_init, np.float32)[None], len(positions), axis=0)),
         torch.as_tensor(arm_base(scene, side)), iterations=ik.iterations)
     if float(pos_err.max()) > ik.tolerance_m or float(rot_err.max()) > ik.tolerance_rad:
-        raise InfeasibleEpisode(f"{failure} (IK error {float(pos_err.max()):.4f} m, {float(rot_err.max()):.3f} rad "
-                                f"at {np.round(position, 3).tolist()})")
-    return q.numpy()[0]
+        raise InfeasibleEpisode(f"{failure} (IK error {float(pos_err.max()):.4f} m, {float(rot_err.max()):.3f} rad)")
+    return q.numpy()
 
 
 def reach(scene: Scene, side: str, position: np.ndarray, rotation: np.ndarray, ik: IKSettings, task: str,
           q_init: np.ndarray | None = None) -> np.ndarray:
     """Joint angles (6,) putting an arm's TCP at (position, rotation), from home unless q_init."""
     q0 = scene.home_q if q_init is None else q_init
-    return solve_pose(scene, side, position, rotation, q0, ik, f"{task}: the {side} arm cannot reach its target")
+    return solve_poses(scene, side, np.asarray(position)[None], np.asarray(rotation)[None], q0, ik,
+                       f"{task}: the {side} arm cannot reach {np.round(position, 3).tolist()}")[0]

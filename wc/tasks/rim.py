@@ -14,7 +14,7 @@ import numpy as np
 
 from wc.dynamics import ObjectState
 from wc.scene.scene import Scene
-from wc.tasks.bag_geometry import bag_rows, lowest_height, rim_grasp
+from wc.tasks.bag_geometry import bag_rows, ends_above, rim_grasp
 from wc.tasks.base import EpisodeSpec, register_task
 from wc.tasks.common import TaskProgram, check_range
 from wc.tasks.lift_handle import hover_action, upright_bag
@@ -102,4 +102,4 @@ class LiftBody(RimTask):
 
     def check(self, scene: Scene, spec: EpisodeSpec, x: np.ndarray, action: np.ndarray) -> str | None:
         """'not_lifted' unless the bag's lowest vertex ends success_lift_m above the table."""
-        return None if lowest_height(scene, x[-1:])[0] >= self.cfg.success_lift_m else "not_lifted"
+        return ends_above(scene, x, self.cfg.success_lift_m, "not_lifted")

@@ -17,7 +17,7 @@ import numpy as np
 
 from wc.dynamics import ObjectState
 from wc.scene.scene import Scene
-from wc.tasks.bag_geometry import bag_rows, lowest_height
+from wc.tasks.bag_geometry import bag_rows, ends_above
 from wc.tasks.base import EpisodeSpec, register_task
 from wc.tasks.lift_handle import HandleConfig, HandleTask, hover_action, upright_bag
 from wc.tasks.motion import ArmProgram, compose, home_separation, tool_rotation
@@ -56,8 +56,7 @@ class TwoHandleTask(HandleTask):
 
     def check(self, scene: Scene, spec: EpisodeSpec, x: np.ndarray, action: np.ndarray) -> str | None:
         """'not_lifted' unless every predicted object ends success_lift_m above the table."""
-        low = min(lowest_height(scene, x[-1:], name)[0] for name in scene.objects)
-        return None if low >= self.cfg.success_lift_m else "not_lifted"
+        return ends_above(scene, x, self.cfg.success_lift_m, "not_lifted", tuple(scene.objects))
 
 
 @register_task("lift_two_arms", HandleConfig)
@@ -113,4 +112,4 @@ class Support(HandleTask):
 
     def check(self, scene: Scene, spec: EpisodeSpec, x: np.ndarray, action: np.ndarray) -> str | None:
         """'not_lifted' unless the bag ends off the table."""
-        return None if lowest_height(scene, x[-1:])[0] >= self.cfg.success_lift_m else "not_lifted"
+        return ends_above(scene, x, self.cfg.success_lift_m, "not_lifted")
