@@ -61,6 +61,7 @@ class ShakeConfig(HandleConfig):
     shake_axis_bins_deg: tuple[float, ...] = (0.0, 90.0)  # oscillation direction, world yaw
     lift_m: float = 0.1
     cycles: float = 2.0
+    lift_speed_m_s: float = 0.08  # the lift before the oscillation: a slow lift lets the strap creep out of the pads
 
 
 class HandleTask(TaskProgram):
@@ -189,14 +190,13 @@ class Shake(HandleTask):
 
     def after_grasp(self, program, scene, point, y, away, spec, frame_dt_s) -> None:
         cfg = self.cfg
-        approach_speed = min(spec.speed, 0.1)
-        top = self.lift(program, scene, point, y, away, cfg.lift_m, approach_speed)
+        top = self.lift(program, scene, point, y, away, cfg.lift_m, cfg.lift_speed_m_s)
         yaw = np.deg2rad(self.cell_values(spec.cell)["shake_axis_bins_deg"])
         axis = np.array([np.cos(yaw), np.sin(yaw), 0.0])
         omega = spec.speed / spec.amplitude  # peak TCP speed = amplitude * omega
         for t in np.arange(1, int(np.ceil(cfg.cycles * 2 * np.pi / omega / frame_dt_s)) + 1) * frame_dt_s:
             program.move(top + spec.amplitude * np.sin(omega * t) * axis, seconds=frame_dt_s)
-        program.move(top, speed=approach_speed).hold(cfg.hold_s)
+        program.move(top, speed=cfg.lift_speed_m_s).hold(cfg.hold_s)
 
     def check(self, scene: Scene, spec: EpisodeSpec, x: np.ndarray, action: np.ndarray) -> str | None:
         """'dropped' unless the bag still hangs success_lift_m above the table at the end."""

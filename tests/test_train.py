@@ -1,0 +1,217 @@
+"""Training WorldContact: windows and phases, schedule, one step lowers the loss, checkpoints reload
+exactly, the stage trains below zero motion and resumes, bad input fails clearly, DDP on gloo."""
+
+from __future__ import annotations
+
+import copy
+import json
+import os
+import socket
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import torch
+
+from stages.train import run
+from tests.synthetic_store import write_synthetic_store
+from wc.config import ParamsError, load_section, read_params
+from wc.data.store import TrajectoryStore
+from wc.model.config import ModelConfig
+from wc.model.layout import scene_layout
+from wc.model.rollout import rollout
+from wc.model.worldcontact import WorldContact
+from wc.train.checkpoint import load_model, save_weights
+from wc.train.config import Schedule, TrainConfig
+from wc.train.data import episode_phases, read_phase_window, split_tail, windows_of
+from wc.train.evaluation import segment_loss
+from wc.train.schedule import learning_rate
+
+EPISODES = [("fall", "train"), ("carry", "train"), ("handoff", "train"), ("fall", "train"), ("fall", "val"),
+            ("carry", "val")]
+TINY_TRAIN = {"base": {"steps": 6, "peak_lr": 1e-3, "start_lr": 1e-4, "final_lr": 1e-4, "warmup_steps": 2},
+              "projection": {"steps": 2, "peak_lr": 1e-4, "start_lr": 1e-5, "final_lr": 1e-5, "warmup_steps": 1},
+              "eval_every_steps": 3, "val_windows": 2, "rollout_frames": 4, "checkpoint_every_steps": 3,
+              "constraint_iterations": 8}
+
+
+@pytest.fixture(scope="module")
+def params() -> dict[str, Any]:
+    p = read_params("params.yaml")
+    p["train"].update(copy.deepcopy(TINY_TRAIN))
+    return p
+
+
+@pytest.fixture(scope="module")
+def store_path(tmp_path_factory, params) -> Path:
+    return write_synthetic_store(tmp_path_factory.mktemp("store") / "s.zarr", params, EPISODES, frames=10)
+
+
+def _batch(store_path: Path, params: dict[str, Any], episode: str = "ep_000000", length: int = 5):
+    store = TrajectoryStore(store_path)
+    phase = episode_phases(store, episode)[0]
+    cfg = load_section(params, "model", ModelConfig)
+    layout = scene_layout(store, list(phase.layout[0]), list(phase.layout[1]), cfg.tag_scale)
+    a = {k: torch.from_numpy(v)[None] for k, v in read_phase_window(store, phase, 0, length).items()}
+    return cfg, layout, a
+
+
+def test_handoff_episode_splits_into_two_layouts(store_path):
+    store = TrajectoryStore(store_path)
+    before, after = episode_phases(store, "ep_000002")
+    release = store.episode_attrs("ep_000002")["handoff"]["sphere"]
+    assert (before.start, before.stop, after.start, after.stop) == (0, release + 1, release, 10)
+    assert before.layout[0] == ("bag",) and "held_sphere" in before.layout[1]
+    assert after.layout[0] == ("bag", "sphere") and "held_sphere" not in after.layout[1]
+    a = read_phase_window(store, before, 0, 3)
+    assert a["x"].shape[1] == store.objects["bag"].rest_positions.shape[0]
+    assert a["poses"].shape[1] == len(before.layout[1]) + len(store.env_names)
+    assert all(w.start + 5 <= w.phase.stop for w in windows_of([before, after], 5))
+
+
+def test_tail_holdout_never_overlaps_training_frames(store_path):
+    store = TrajectoryStore(store_path)
+    phases = [p for e in store.episodes_where(split="train") for p in episode_phases(store, e)]
+    head, tail = split_tail(phases, 0.5, 3)
+    for h in head:
+        for t in (t for t in tail if t.episode == h.episode and t.layout == h.layout):
+            assert h.stop <= t.start
+
+
+def test_schedule_warms_up_then_decays():
+    s = Schedule(steps=100, peak_lr=1e-3, start_lr=1e-5, final_lr=1e-4, warmup_steps=10)
+    assert learning_rate(s, 0) == pytest.approx(1e-5)
+    assert learning_rate(s, 10) == pytest.approx(1e-3)
+    assert learning_rate(s, 100) == pytest.approx(1e-4)
+    lrs = [learning_rate(s, k) for k in range(10, 101)]
+    assert all(a >= b for a, b in zip(lrs, lrs[1:]))
+
+
+def test_one_training_step_lowers_the_loss_on_a_fixed_batch(store_path, params):
+    torch.manual_seed(0)
+    cfg, layout, a = _batch(store_path, params)
+    model = WorldContact(cfg, velocity_m_s=0.3, delta_x_m=0.005, delta_v_m_s=0.1).train()
+    model.decoder.eval()  # no dropout: the same function before and after the step
+    opt = torch.optim.AdamW(model.parameters(), lr=1e-3)
+
+    def loss() -> torch.Tensor:
+        xp, vp = rollout(model, layout, a["x"][:, 0], a["v"][:, 0], a["poses"], 0.04)
+        return segment_loss(xp, vp, a["x"][:, 1:], a["v"][:, 1:], 1e4, 1e4)
+
+    before = loss()
+    opt.zero_grad()
+    before.backward()
+    opt.step()
+    with torch.no_grad():
+        assert float(loss()) < float(before)
+
+
+def test_checkpoint_reloads_to_identical_predictions(store_path, params, tmp_path):
+    cfg, layout, a = _batch(store_path, params)
+    model = WorldContact(cfg, velocity_m_s=0.3, delta_x_m=0.005, delta_v_m_s=0.1).eval()
+    torch.nn.init.normal_(model.head.mlp[-1].weight, std=0.1)  # visible predictions
+    save_weights(model, tmp_path / "m.safetensors", {"note": "test"})
+    loaded, meta = load_model(tmp_path / "m.safetensors")
+    assert meta["note"] == "test"
+    with torch.no_grad():
+        want = rollout(model, layout, a["x"][:, 0], a["v"][:, 0], a["poses"], 0.04)
+        got = rollout(loaded, layout, a["x"][:, 0], a["v"][:, 0], a["poses"], 0.04)
+    assert torch.equal(want[0], got[0]) and torch.equal(want[1], got[1])
+
+
+def test_corrupt_or_missing_checkpoint(tmp_path):
+    with pytest.raises(FileNotFoundError, match="checkpoint file missing"):
+        load_model(tmp_path / "none.safetensors")
+    (tmp_path / "bad.safetensors").write_bytes(b"not a tensor file")
+    (tmp_path / "bad.json").write_text("{}")
+    with pytest.raises(ValueError, match="not a WorldContact checkpoint config"):
+        load_model(tmp_path / "bad.safetensors")
+
+
+def test_bad_model_inputs_are_named(store_path, params):
+    cfg, layout, a = _batch(store_path, params)
+    model = WorldContact(cfg, velocity_m_s=0.3, delta_x_m=0.005, delta_v_m_s=0.1)
+    x, v = a["x"][:, 0], a["v"][:, 0]
+    with pytest.raises(ValueError, match="x must be"):
+        rollout(model, layout, x[:, :-1], v[:, :-1], a["poses"], 0.04)  # object set of another layout
+    with pytest.raises(ValueError, match="body poses"):
+        rollout(model, layout, x, v, a["poses"][:, :, :-1], 0.04)
+    bad = x.clone()
+    bad[0, 3, 1] = float("nan")
+    with pytest.raises(ValueError, match="non-finite"):
+        rollout(model, layout, bad, v, a["poses"], 0.04)
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory, store_path, params) -> tuple[dict[str, Any], Path]:
+    d = tmp_path_factory.mktemp("train")
+    report = run(params, store_path, d / "model", d / "train.json", d / "train_loss.csv")
+    return report, d
+
+
+def test_stage_writes_model_report_and_curves(trained):
+    report, d = trained
+    assert json.loads((d / "train.json").read_text())["params_hash"] == report["params_hash"]
+    assert report["parameters"] == {"tokenizer": 57993, "encoder": 782784, "decoder": 1116480, "head": 42502,
+                                    "total": 1999759}
+    assert report["validation"] == "val split" and report["final_stage"] == "projection"
+    assert [h["step"] for h in report["history"]] == [3, 6, 8]
+    assert {h["stage"] for h in report["history"]} == {"base", "projection"}
+    for name in ("model", "base", "last"):
+        assert (d / "model" / f"{name}.safetensors").is_file() and (d / "model" / f"{name}.json").is_file()
+    assert not Path(f"{d / 'model'}.partial").exists()
+    assert (d / "train_loss.png").stat().st_size > 0 and len((d / "train_loss.csv").read_text().splitlines()) == 4
+    model, meta = load_model(d / "model" / "model.safetensors")
+    assert meta["projection"] is True and meta["stage"] == "projection"
+    assert report["s_per_step_median"] > 0 and np.isfinite(report["best_val_loss"])
+
+
+def test_resume_continues_from_the_partial_checkpoint(store_path, params, tmp_path):
+    first = copy.deepcopy(params)
+    first["train"]["base"]["steps"] = 3
+    first["train"]["projection"].update(steps=0, warmup_steps=0)
+    out = tmp_path / "model"
+    run(first, store_path, out, tmp_path / "a.json", tmp_path / "a.csv")
+    (tmp_path / "model").rename(tmp_path / "model.partial")  # as if interrupted after step 3
+    second = copy.deepcopy(params)
+    second["train"]["projection"].update(steps=0, warmup_steps=0)
+    report = run(second, store_path, out, tmp_path / "b.json", tmp_path / "b.csv", resume=True)
+    assert [h["step"] for h in report["history"]] == [3, 6]
+
+
+def test_missing_store_and_bad_params(params, tmp_path):
+    with pytest.raises(FileNotFoundError, match="trajectory store not found"):
+        run(params, tmp_path / "none.zarr", tmp_path / "m", tmp_path / "r.json", tmp_path / "c.csv")
+    bad = copy.deepcopy(params)
+    bad["train"]["window"] = 1
+    with pytest.raises(ParamsError, match="window"):
+        run(bad, tmp_path / "none.zarr", tmp_path / "m", tmp_path / "r.json", tmp_path / "c.csv")
+    bad = copy.deepcopy(params)
+    bad["model"]["tokenizer"] = "mlp"
+    with pytest.raises(ParamsError, match="model.tokenizer"):
+        load_section(bad, "model", ModelConfig)
+    load_section(params, "train", TrainConfig)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.mark.slow
+def test_two_process_ddp_on_gloo(store_path, tmp_path):
+    """torchrun-style launch: 2 CPU processes (gloo), gradients averaged, rank 0 writes the output."""
+    overrides = ["--set", "train.base.steps=2", "--set", "train.base.warmup_steps=1", "--set", "train.projection.steps=0", "--set", "train.projection.warmup_steps=0", "--set",
+                 "train.eval_every_steps=2", "--set", "train.val_windows=1", "--set", "train.rollout_frames=2"]
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc-per-node", "2", "--master-port",
+           str(_free_port()), "-m", "stages.train", "--store", str(store_path), "--out", str(tmp_path / "m"),
+           "--report", str(tmp_path / "r.json"), "--curves", str(tmp_path / "c.csv"), *overrides]
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    done = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    report = json.loads((tmp_path / "r.json").read_text())
+    assert report["processes"] == 2 and (tmp_path / "m" / "model.safetensors").is_file()

@@ -1,0 +1,1 @@
+"""WorldContact network: tokenizer, hierarchical encoder, global-token decoder, head and topology projection."""

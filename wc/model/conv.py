@@ -1,0 +1,168 @@
+"""Continuous convolution over neighbour pairs (Ummenhofer et al. 2020, Open3D-ML ContinuousConv).
+
+The learned kernel W(r) is a K x K x K grid of (Cin x Cout) matrices on the ball of radius R: an
+offset r is scaled into the unit ball, mapped to the cube [-1, 1]^3 with the volume-preserving
+ball-to-cube mapping, and the grid is trilinearly interpolated there (align_corners=True). Each
+pair is weighted by the poly6 window, so the kernel goes smoothly to zero at the radius; there is
+no normalisation by neighbour count (WorldParticle and DeepLagrangianFluids use normalize=False).
+Differentiable w.r.t. positions, features and the kernel; pure torch, any device, float32/float64.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor, nn
+
+_EPS_SQ = 1.0e-8  # squared norms below this map to the centre (Open3D's threshold)
+
+
+def ball_to_cube_volume_preserving(p: Tensor) -> Tensor:
+    """Map points (..., 3) of the unit ball onto the cube [-1, 1]^3, preserving volume.
+
+    Ball -> cylinder (axis z) -> cube, as Open3D-ML's BALL_TO_CUBE_VOLUME_PRESERVING mapping
+    (open3d/ml/impl/continuous_conv/CoordinateTransformation: MapSphereToCylinder followed by
+    MapCylinderToCube; Griepentrog et al.). Branches use torch.where with guarded denominators so
+    the unselected branch never puts inf/nan into the gradient.
+    """
+    x, y, z = p.unbind(-1)
+    one = torch.ones_like(x)
+
+    # Sphere -> cylinder of radius 1, height [-1, 1].
+    sq_norm = x * x + y * y + z * z
+    centre = sq_norm < _EPS_SQ
+    norm = sq_norm.clamp_min(_EPS_SQ).sqrt()
+    sq_xy = x * x + y * y
+    cap = 1.25 * z * z > sq_xy  # polar caps map to the cylinder's lids
+    s_cap = (3.0 * norm / (norm + z.abs())).sqrt()
+    # Off the caps sq_xy >= (5/9) sq_norm >= (5/9) eps, so this clamp only guards the unused branch.
+    s_side = norm / sq_xy.clamp_min(0.5 * _EPS_SQ).sqrt()
+    s = torch.where(cap, s_cap, s_side)
+    x1, y1 = x * s, y * s
+    z1 = torch.where(cap, torch.copysign(norm, z), 1.5 * z)
+
+    # Cylinder -> cube: the disc's polar angle becomes the square's edge coordinate.
+    sq_xy1 = x1 * x1 + y1 * y1
+    axis = sq_xy1 < _EPS_SQ
+    norm_xy = sq_xy1.clamp_min(_EPS_SQ).sqrt()
+    x_major = y1.abs() <= x1.abs()
+    den_x = torch.where(x_major & ~axis, x1, one)
+    den_y = torch.where(~x_major & ~axis, y1, one)
+    k = 4.0 / math.pi
+    x_sx = torch.copysign(norm_xy, x1)
+    y_sy = torch.copysign(norm_xy, y1)
+    x2 = torch.where(x_major, x_sx, y_sy * k * torch.atan(x1 / den_y))
+    y2 = torch.where(x_major, x_sx * k * torch.atan(y1 / den_x), y_sy)
+    x2 = torch.where(axis, torch.zeros_like(x2), x2)
+    y2 = torch.where(axis, torch.zeros_like(y2), y2)
+
+    out = torch.stack((x2, y2, z1), dim=-1)
+    return torch.where(centre[..., None], torch.zeros_like(out), out)
+
+
+def poly6_window(r_sq_normalised: Tensor) -> Tensor:
+    """Pair importance clamp((1 - |r|^2/R^2)^3, 0, 1) from |r|^2/R^2: 1 at the centre, 0 at R."""
+    return (1.0 - r_sq_normalised).pow(3).clamp(0.0, 1.0)
+
+
+def trilinear_corners(grid_coord: Tensor, kernel_size: int) -> tuple[Tensor, Tensor]:
+    """Flat cell indices (P, 8) and weights (P, 8) of grid coordinates (P, 3) in [0, K-1].
+
+    Open3D's LINEAR interpolation: indices clamped to the grid, fractions clamped to [0, 1]. The
+    flat index is (iz * K + iy) * K + ix, i.e. the kernel is stored [z, y, x] like Open3D's filter.
+    """
+    k = kernel_size
+    i0 = grid_coord.detach().floor().clamp(0, k - 1)
+    frac = (grid_coord - i0).clamp(0.0, 1.0)  # (P, 3), differentiable
+    i0 = i0.long()
+    i1 = (i0 + 1).clamp(max=k - 1)
+    idx = torch.stack((i0, i1), dim=-1)  # (P, 3, 2): axis, lower/upper
+    w = torch.stack((1.0 - frac, frac), dim=-1)  # (P, 3, 2)
+    ix, iy, iz = idx.unbind(1)
+    wx, wy, wz = w.unbind(1)
+    flat = (iz[:, :, None, None] * k + iy[:, None, :, None]) * k + ix[:, None, None, :]  # (P, 2, 2, 2)
+    weight = wz[:, :, None, None] * wy[:, None, :, None] * wx[:, None, None, :]
+    return flat.reshape(-1, 8), weight.reshape(-1, 8)
+
+
+class ContinuousConv(nn.Module):
+    """g_i = sum_j window(|r_ij|) W(r_ij)^T u_j + b over given pairs (i = query, j = neighbour).
+
+    Kernel parameter (K, K, K, Cin, Cout) stored [z, y, x] (Open3D layout), bias (Cout,).
+    radius [m] is the kernel's support: extent 2 * radius in Open3D's terms.
+    """
+
+    def __init__(self, in_channels: int, out_channels: int, radius: float, kernel_size: int = 4, bias: bool = True) -> None:
+        super().__init__()
+        if not radius > 0.0:
+            raise ValueError(f"radius must be positive, got {radius}")
+        if kernel_size < 2:
+            raise ValueError(f"kernel_size must be >= 2 (align_corners grid), got {kernel_size}")
+        self.in_channels = in_channels
+        self.out_channels = out_channels
+        self.radius = float(radius)
+        self.kernel_size = kernel_size
+        self.kernel = nn.Parameter(torch.empty(kernel_size, kernel_size, kernel_size, in_channels, out_channels))
+        self.bias = nn.Parameter(torch.empty(out_channels)) if bias else None
+        self.reset_parameters()
+
+    def reset_parameters(self) -> None:
+        """Xavier-uniform over the kernel as a (K^3 * Cin) -> (K^3 * Cout) map; zero bias."""
+        cells = self.kernel_size**3
+        bound = math.sqrt(6.0 / (cells * (self.in_channels + self.out_channels)))
+        nn.init.uniform_(self.kernel, -bound, bound)
+        if self.bias is not None:
+            nn.init.zeros_(self.bias)
+
+    def extra_repr(self) -> str:
+        return f"{self.in_channels}, {self.out_channels}, radius={self.radius}, kernel_size={self.kernel_size}"
+
+    def forward(
+        self,
+        query_pos: Tensor,
+        neighbor_pos: Tensor,
+        neighbor_feats: Tensor,
+        qi: Tensor,
+        pj: Tensor,
+        offset_transform: Tensor | None = None,
+    ) -> Tensor:
+        """Aggregate neighbour features onto queries.
+
+        query_pos (N, 3), neighbor_pos (M, 3) [m]; neighbor_feats (M, Cin); pairs qi, pj (P,) int64
+        indexing query and neighbour; offset_transform (3, 3) applied to offsets before the kernel
+        lookup (the window uses the untransformed offset). Returns (N, Cout). Geometry and the sum
+        over pairs run in float32 (float64 if positions are float64) even under autocast.
+        """
+        n, k = query_pos.shape[0], self.kernel_size
+        if query_pos.ndim != 2 or query_pos.shape[1] != 3:
+            raise ValueError(f"query_pos must be (N, 3), got {tuple(query_pos.shape)}")
+        if neighbor_pos.ndim != 2 or neighbor_pos.shape[1] != 3:
+            raise ValueError(f"neighbor_pos must be (M, 3), got {tuple(neighbor_pos.shape)}")
+        if neighbor_feats.shape != (neighbor_pos.shape[0], self.in_channels):
+            raise ValueError(
+                f"neighbor_feats must be ({neighbor_pos.shape[0]}, {self.in_channels}), got {tuple(neighbor_feats.shape)}"
+            )
+        if qi.ndim != 1 or qi.shape != pj.shape:
+            raise ValueError(f"qi and pj must be equal-length 1-D index tensors, got {tuple(qi.shape)}, {tuple(pj.shape)}")
+        if offset_transform is not None and offset_transform.shape != (3, 3):
+            raise ValueError(f"offset_transform must be (3, 3), got {tuple(offset_transform.shape)}")
+
+        dtype = torch.float64 if query_pos.dtype == torch.float64 else torch.float32
+        with torch.autocast(device_type=query_pos.device.type, enabled=False):
+            r = neighbor_pos.to(dtype)[pj] - query_pos.to(dtype)[qi]  # (P, 3) [m]
+            importance = poly6_window(r.square().sum(-1) / self.radius**2)  # (P,)
+            if offset_transform is not None:
+                r = r @ offset_transform.to(dtype).T
+            cube = ball_to_cube_volume_preserving(r / self.radius)  # (P, 3) in [-1, 1]
+            grid_coord = (cube + 1.0) * (0.5 * (k - 1))  # align_corners: [-1, 1] -> [0, K-1]
+            cell, weight = trilinear_corners(grid_coord, k)  # (P, 8)
+            feats = neighbor_feats.to(dtype)[pj]  # (P, Cin)
+            values = (weight * importance[:, None])[:, :, None] * feats[:, None, :]  # (P, 8, Cin)
+            acc = torch.zeros(n * k**3, self.in_channels, dtype=dtype, device=query_pos.device)
+            acc.index_add_(0, (qi[:, None] * k**3 + cell).reshape(-1), values.reshape(-1, self.in_channels))
+        # One matmul for all queries; autocast may run it in bf16, the sum over pairs stays fp32.
+        out = acc.reshape(n, k**3 * self.in_channels) @ self.kernel.reshape(-1, self.out_channels).to(acc.dtype)
+        if self.bias is not None:
+            out = out + self.bias
+        return out

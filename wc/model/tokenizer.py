@@ -1,0 +1,247 @@
+"""Contact-centric vertex tokenizer (paper Eqs. contact_aggregation, contact_branches, tokenizer).
+
+Every predicted vertex i gets a 192-wide token h_i from four neighbour sets aggregated by
+continuous convolutions, g_i^k = sum_j W_k(r_ij) u_ij (k = S, T, C, E), plus a direct per-vertex
+feature. Shapes: B scenes sharing one layout, N predicted vertices, Mc controllable and Me
+environment samples per scene. Positions in metres, velocities in m/s (divided by velocity_scale
+before they become features). `LinearTokenizer` is the paper's "no contact tokenizer" ablation.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+from wc.model.conv import ContinuousConv
+from wc.model.neighbors import nearest_index, radius_pairs
+
+TOKEN_DIM = 192
+VERTEX_FEATURES = 7  # [1, v / velocity_scale (3), c (3)] for vertices; [v / vs (3), tag, normal (3)] for samples
+SAMPLE_ATTRIBUTES = 4  # [scaled tag, unit normal]
+
+
+def topology_pairs(rest_uv: Tensor, object_index: Tensor, radius: float) -> tuple[Tensor, Tensor]:
+    """Topological neighbours N^T: pairs (ti, tj) within `radius` in rest uv space, same object, i != j.
+
+    rest_uv (N, 2) in uv units, object_index (N,) int64. Computed once per layout; indices are
+    into one scene's N vertices, sorted by ti then tj.
+    """
+    if rest_uv.ndim != 2 or rest_uv.shape[1] != 2:
+        raise ValueError(f"rest_uv must be (N, 2), got {tuple(rest_uv.shape)}")
+    if object_index.shape != (rest_uv.shape[0],):
+        raise ValueError(f"object_index must be ({rest_uv.shape[0]},), got {tuple(object_index.shape)}")
+    uv3 = torch.cat((rest_uv.float(), rest_uv.new_zeros(rest_uv.shape[0], 1, dtype=torch.float32)), dim=1)
+    return radius_pairs(uv3, uv3, radius, query_batch=object_index, point_batch=object_index, exclude_self=True)
+
+
+def _check_inputs(
+    x: Tensor,
+    v: Tensor,
+    attributes: Tensor,
+    object_index: Tensor,
+    ti: Tensor,
+    tj: Tensor,
+    ctrl_x: Tensor,
+    ctrl_v: Tensor,
+    ctrl_attr: Tensor,
+    env_x: Tensor,
+    env_v: Tensor,
+    env_attr: Tensor,
+) -> None:
+    """Raise ValueError naming the argument for wrong shapes or a non-finite object state."""
+    if x.ndim != 3 or x.shape[2] != 3:
+        raise ValueError(f"x must be (B, N, 3), got {tuple(x.shape)}")
+    b, n, _ = x.shape
+    if v.shape != x.shape:
+        raise ValueError(f"v must be (B, N, 3) = {tuple(x.shape)} like x, got {tuple(v.shape)}")
+    if attributes.ndim != 2 or attributes.shape[1] != 3:
+        raise ValueError(f"attributes must be (N, 3) = [tag, u, v], got {tuple(attributes.shape)}")
+    if attributes.shape[0] != n:
+        raise ValueError(f"attributes has {attributes.shape[0]} rows but x has N = {n} vertices")
+    if object_index.shape != (n,):
+        raise ValueError(f"object_index must be (N,) = ({n},), got {tuple(object_index.shape)}")
+    if ti.ndim != 1 or ti.shape != tj.shape:
+        raise ValueError(f"ti and tj must be equal-length 1-D index tensors, got {tuple(ti.shape)}, {tuple(tj.shape)}")
+    for name, sx, sv, sa in (("ctrl", ctrl_x, ctrl_v, ctrl_attr), ("env", env_x, env_v, env_attr)):
+        if sx.ndim != 3 or sx.shape[0] != b or sx.shape[2] != 3:
+            raise ValueError(f"{name}_x must be (B={b}, M, 3), got {tuple(sx.shape)}")
+        if sv.shape != sx.shape:
+            raise ValueError(f"{name}_v must be {tuple(sx.shape)} like {name}_x, got {tuple(sv.shape)}")
+        if sa.ndim != 3 or sa.shape[:2] != sx.shape[:2] or sa.shape[2] != SAMPLE_ATTRIBUTES:
+            raise ValueError(
+                f"{name}_attr must be (B={b}, M={sx.shape[1]}, {SAMPLE_ATTRIBUTES}) = [tag, normal], got {tuple(sa.shape)}"
+            )
+    # One host sync per step; a NaN state otherwise surfaces far downstream as a NaN loss.
+    if not bool(torch.isfinite(x).all()):
+        raise ValueError("non-finite x in the object state")
+    if not bool(torch.isfinite(v).all()):
+        raise ValueError("non-finite v in the object state")
+    if ti.numel() > 0 and (int(ti.min()) < 0 or int(tj.min()) < 0 or int(ti.max()) >= n or int(tj.max()) >= n):
+        raise ValueError(f"topology pair indices ti, tj must lie in [0, N = {n})")
+
+
+def _scene_ids(b: int, per_scene: int, device: torch.device) -> Tensor:
+    """Batch id (B * per_scene,) of every row of a flattened (B, per_scene, ...) tensor."""
+    return torch.arange(b, device=device).repeat_interleave(per_scene)
+
+
+class ContactTokenizer(nn.Module):
+    """h_i = [g^S, g^T, g^E, g^C, direct] (B, N, 192) from the object state and the prescribed samples.
+
+    Radii in metres (topology_radius in rest-uv metres: the caller's `topology_pairs` uses it, and it
+    is the topology kernel's support), velocity_scale in m/s.
+    """
+
+    def __init__(
+        self,
+        spatial_radius: float,
+        topology_radius: float,
+        controllable_radius: float,
+        environment_radius: float,
+        velocity_scale: float,
+        kernel_size: int = 4,
+        spatial_channels: int = 32,
+        topology_channels: int = 32,
+        boundary_channels: int = 64,
+        direct_channels: int = 64,
+    ) -> None:
+        super().__init__()
+        if not velocity_scale > 0.0:
+            raise ValueError(f"velocity_scale must be positive, got {velocity_scale}")
+        if boundary_channels % 2 != 0:
+            raise ValueError(f"boundary_channels must be even (split C/E), got {boundary_channels}")
+        self.spatial_radius = float(spatial_radius)
+        self.topology_radius = float(topology_radius)
+        self.controllable_radius = float(controllable_radius)
+        self.environment_radius = float(environment_radius)
+        self.velocity_scale = float(velocity_scale)
+        self.out_dim = spatial_channels + topology_channels + boundary_channels + direct_channels
+        f = VERTEX_FEATURES
+        self.spatial = ContinuousConv(f, spatial_channels, spatial_radius, kernel_size)
+        # rest uv is isometric to the rest shape (metres), so uv-neighbours start within
+        # topology_radius in 3D too; a pair stretched beyond it fades out through the window.
+        self.topology = ContinuousConv(f, topology_channels, topology_radius, kernel_size)
+        self.environment = ContinuousConv(f, boundary_channels // 2, environment_radius, kernel_size)
+        self.controllable = ContinuousConv(f, boundary_channels // 2, controllable_radius, kernel_size)
+        # Translation invariance: absolute x is no token feature (only offsets r_ij and the vertex's
+        # own velocity and attributes); positions enter later through RoPE on the anchors.
+        self.direct = nn.Linear(f, direct_channels)
+        # The appendix's tokenizer has 9 parameters more than its convolutions and direct layer;
+        # we spend them on a learnable 3x3 map of the offsets shared by the four kernels (an
+        # anisotropic kernel frame, e.g. to align with gravity). A choice of ours, not the paper's.
+        self.offset_transform = nn.Parameter(torch.eye(3))
+
+    def forward(
+        self,
+        x: Tensor,
+        v: Tensor,
+        attributes: Tensor,
+        object_index: Tensor,
+        ti: Tensor,
+        tj: Tensor,
+        ctrl_x: Tensor,
+        ctrl_v: Tensor,
+        ctrl_attr: Tensor,
+        env_x: Tensor,
+        env_v: Tensor,
+        env_attr: Tensor,
+    ) -> Tensor:
+        """Vertex tokens (B, N, 192).
+
+        x, v (B, N, 3) object state at t; attributes (N, 3) = [tag, rest u, rest v]; object_index
+        (N,) is only validated (the topology pairs already keep to one object, and spatial contact
+        crosses objects by design); ti, tj (P,) from `topology_pairs` (one scene's indices);
+        ctrl_* / env_* the controllable / environment samples at t + dt: x, v (B, M, 3),
+        attr (B, M, 4) = [tag, unit normal].
+        """
+        _check_inputs(x, v, attributes, object_index, ti, tj, ctrl_x, ctrl_v, ctrl_attr, env_x, env_v, env_attr)
+        b, n, _ = x.shape
+        device = x.device
+        vs = self.velocity_scale
+        xf = x.reshape(b * n, 3)
+        scene = _scene_ids(b, n, device)
+        c = attributes.to(x.dtype).expand(b, n, 3).reshape(b * n, 3)
+        ones = xf.new_ones(b * n, 1)
+        u = torch.cat((ones, v.reshape(b * n, 3) / vs, c), dim=1)  # (B*N, 7) = [1, v_j, c_j]
+        frame = self.offset_transform
+
+        # Spatial contact: Euclidean neighbours across all predicted objects of the scene.
+        qi, pj = radius_pairs(xf, xf, self.spatial_radius, query_batch=scene, point_batch=scene, exclude_self=True)
+        g_s = self.spatial(xf, xf, u, qi, pj, frame)
+
+        # Topological contact: rest-uv neighbours, offset per scene, r from current positions.
+        shift = (torch.arange(b, device=device) * n)[:, None]
+        ti_b = (ti.to(device)[None, :] + shift).reshape(-1)
+        tj_b = (tj.to(device)[None, :] + shift).reshape(-1)
+        g_t = self.topology(xf, xf, u, ti_b, tj_b, frame)
+
+        # Boundary contact with the prescribed samples at t + dt.
+        g_e = self._boundary(self.environment, self.environment_radius, xf, scene, env_x, env_v, env_attr)
+        g_c = self._boundary(self.controllable, self.controllable_radius, xf, scene, ctrl_x, ctrl_v, ctrl_attr)
+
+        direct = self.direct(u)  # [1, v_i, c_i]
+        h = torch.cat((g_s, g_t, g_e, g_c, direct), dim=1)
+        return h.reshape(b, n, self.out_dim)
+
+    def _boundary(
+        self, conv: ContinuousConv, radius: float, xf: Tensor, scene: Tensor, sx: Tensor, sv: Tensor, sattr: Tensor
+    ) -> Tensor:
+        """g^C or g^E (B*N, C): samples within `radius` of each vertex, u_j = [v_j / vs, attr_j]."""
+        b, m, _ = sx.shape
+        sxf = sx.reshape(b * m, 3).to(xf.dtype)
+        u = torch.cat((sv.reshape(b * m, 3).to(xf.dtype) / self.velocity_scale, sattr.reshape(b * m, 4).to(xf.dtype)), dim=1)
+        qi, pj = radius_pairs(xf, sxf, radius, query_batch=scene, point_batch=_scene_ids(b, m, xf.device))
+        return conv(xf, sxf, u, qi, pj, self.offset_transform)
+
+
+class LinearTokenizer(nn.Module):
+    """Ablation "no contact tokenizer": h_i = Linear([x_i, v_i, c_i, nearest C sample, nearest E sample]).
+
+    A sample's features are (x_j - x_i, v_j / vs, attr_j) (10); an empty sample set gives zeros.
+    Same forward signature as ContactTokenizer; object_index and the topology pairs are ignored.
+    """
+
+    def __init__(self, velocity_scale: float, out_dim: int = TOKEN_DIM) -> None:
+        super().__init__()
+        if not velocity_scale > 0.0:
+            raise ValueError(f"velocity_scale must be positive, got {velocity_scale}")
+        self.velocity_scale = float(velocity_scale)
+        self.out_dim = out_dim
+        self.proj = nn.Linear(9 + 2 * (3 + 3 + SAMPLE_ATTRIBUTES), out_dim)
+
+    def forward(
+        self,
+        x: Tensor,
+        v: Tensor,
+        attributes: Tensor,
+        object_index: Tensor,
+        ti: Tensor,
+        tj: Tensor,
+        ctrl_x: Tensor,
+        ctrl_v: Tensor,
+        ctrl_attr: Tensor,
+        env_x: Tensor,
+        env_v: Tensor,
+        env_attr: Tensor,
+    ) -> Tensor:
+        """Vertex tokens (B, N, out_dim); arguments as ContactTokenizer.forward."""
+        _check_inputs(x, v, attributes, object_index, ti, tj, ctrl_x, ctrl_v, ctrl_attr, env_x, env_v, env_attr)
+        b, n, _ = x.shape
+        c = attributes.to(x.dtype).expand(b, n, 3)
+        feats = [x, v / self.velocity_scale, c]
+        for sx, sv, sa in ((ctrl_x, ctrl_v, ctrl_attr), (env_x, env_v, env_attr)):
+            feats.append(self._nearest(x, sx, sv, sa))
+        return self.proj(torch.cat(feats, dim=-1))
+
+    def _nearest(self, x: Tensor, sx: Tensor, sv: Tensor, sa: Tensor) -> Tensor:
+        """(B, N, 10) = [x_j - x_i, v_j / vs, attr_j] of each vertex's nearest sample j (zeros if none)."""
+        b, n, _ = x.shape
+        m = sx.shape[1]
+        if m == 0:
+            return x.new_zeros(b, n, 3 + 3 + SAMPLE_ATTRIBUTES)
+        xf = x.reshape(b * n, 3)
+        j = nearest_index(xf, sx.reshape(b * m, 3), _scene_ids(b, n, x.device), _scene_ids(b, m, x.device))
+        sxf = sx.reshape(b * m, 3).to(x.dtype)[j]
+        svf = sv.reshape(b * m, 3).to(x.dtype)[j] / self.velocity_scale
+        saf = sa.reshape(b * m, SAMPLE_ATTRIBUTES).to(x.dtype)[j]
+        return torch.cat((sxf - xf, svf, saf), dim=-1).reshape(b, n, -1)

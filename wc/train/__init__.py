@@ -1,0 +1,1 @@
+"""WorldContact training: windows, schedules, checkpoints, the (DDP) loop."""

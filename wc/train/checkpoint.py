@@ -1,0 +1,61 @@
+"""Checkpoints: weights as safetensors + a JSON config; optimizer/schedule state for resuming."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+import torch
+from safetensors.torch import load_file, save_file
+
+from wc.model.config import ModelConfig
+from wc.model.worldcontact import WorldContact
+
+
+def _atomic(path: Path, write) -> None:  # noqa: ANN001 - write(tmp_path)
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    write(tmp)
+    os.replace(tmp, path)
+
+
+def save_weights(model: WorldContact, path: Path, meta: dict[str, Any]) -> None:
+    """Write `path` (.safetensors) and its sibling `<stem>.json` (model config, scales, `meta`)."""
+    state = {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
+    _atomic(path, lambda p: save_file(state, str(p)))
+    v, dx, dv = (float(s) for s in model.scales)
+    config = {"model": model.config.to_dict(), "scales": {"velocity_m_s": v, "delta_x_m": dx, "delta_v_m_s": dv},
+              **meta}
+    _atomic(path.with_suffix(".json"), lambda p: p.write_text(json.dumps(config, indent=2)))
+
+
+def load_model(path: str | os.PathLike[str], device: str | torch.device = "cpu") -> tuple[WorldContact, dict[str, Any]]:
+    """A WorldContact (eval mode) and its config dict from `path` (.safetensors with a sibling .json)."""
+    path = Path(path)
+    config_path = path.with_suffix(".json")
+    for p in (path, config_path):
+        if not p.is_file():
+            raise FileNotFoundError(f"checkpoint file missing: {p}")
+    try:
+        config = json.loads(config_path.read_text())
+        model = WorldContact(ModelConfig(**config["model"]), **config["scales"])
+    except (json.JSONDecodeError, KeyError, TypeError) as err:
+        raise ValueError(f"{config_path}: not a WorldContact checkpoint config: {err}") from err
+    try:
+        state = load_file(str(path))
+    except Exception as err:  # safetensors raises its own error types for corrupt files
+        raise ValueError(f"{path}: unreadable safetensors file: {err}") from err
+    missing, unexpected = model.load_state_dict(state, strict=False)
+    if missing or unexpected:
+        raise ValueError(f"{path}: weights do not match the config (missing {missing[:3]}, unexpected {unexpected[:3]})")
+    return model.to(device).eval(), config
+
+
+def save_state(path: Path, state: dict[str, Any]) -> None:
+    """Optimizer, scheduler, step, RNG and history for resuming (torch.save, atomic)."""
+    _atomic(path, lambda p: torch.save(state, p))
+
+
+def load_state(path: Path) -> dict[str, Any]:
+    return torch.load(path, map_location="cpu", weights_only=False)

@@ -1,0 +1,67 @@
+"""The `train` params section: segments, the two learning-rate schedules, validation and devices."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class Schedule:
+    """Linear warm-up from `start_lr` to `peak_lr`, then cosine decay to `final_lr` at `steps`."""
+
+    steps: int
+    peak_lr: float
+    start_lr: float
+    final_lr: float
+    warmup_steps: int
+
+    def validate(self) -> None:
+        if self.steps < 0 or self.warmup_steps < 0:
+            raise ValueError("steps and warmup_steps must be >= 0")
+        if self.warmup_steps > self.steps:
+            raise ValueError(f"warmup_steps ({self.warmup_steps}) exceeds steps ({self.steps})")
+        if min(self.peak_lr, self.start_lr, self.final_lr) < 0:
+            raise ValueError("learning rates must be >= 0")
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Paper: W = 5, λx = λv = 1e4, AdamW (0.9, 0.999), weight decay 5e-4; base then projection fine-tune."""
+
+    base: Schedule  # stage 1: no projection
+    projection: Schedule  # stage 2: continues from stage 1 with the topology projection in the loop
+    window: int = 5  # W frames per segment: W - 1 autoregressive steps with gradients through all of them
+    batch_size: int = 1  # segments per optimisation step (per process), all of one layout
+    lambda_x: float = 1.0e4
+    lambda_v: float = 1.0e4
+    betas: tuple[float, float] = (0.9, 0.999)
+    weight_decay: float = 5.0e-4
+    grad_clip: float = 1.0  # max global gradient norm (0 = off)
+    smoothing_iterations: int = 4  # projection P: Laplacian smoothing of the displacement
+    smoothing_weight: float = 0.35
+    constraint_iterations: int = 32  # then edge-length constraints
+    edge_ratio: tuple[float, float] = (0.9, 1.1)
+    eval_every_steps: int = 50  # validation loss + held-out rollout error, logged as one "epoch"
+    val_windows: int = 32  # validation segments per evaluation (a fixed, seeded subset)
+    rollout_frames: int = 25  # held-out autoregressive rollout length per validation episode
+    holdout_fraction: float = 0.25  # with no val split: the last part of each train episode validates
+    stats_episodes: int = 32  # episodes read to set the input/output scales
+    checkpoint_every_steps: int = 100
+    autocast_bf16: bool = False  # CUDA only: bf16 autocast of the network, fp32 state accumulation
+    num_workers: int = 0  # DataLoader workers
+    device: str = "cpu"  # cpu | cuda | cuda:k (torchrun: each process takes cuda:LOCAL_RANK)
+    seed: int = 0
+
+    def validate(self) -> None:
+        if self.window < 2:
+            raise ValueError(f"window must be >= 2 frames, got {self.window}")
+        if self.batch_size < 1:
+            raise ValueError("batch_size must be >= 1")
+        if not 0.0 < self.holdout_fraction < 1.0:
+            raise ValueError(f"holdout_fraction must be in (0, 1), got {self.holdout_fraction}")
+        lo, hi = self.edge_ratio
+        if not 0 < lo <= 1 <= hi:
+            raise ValueError(f"edge_ratio must satisfy 0 < lo <= 1 <= hi, got {self.edge_ratio}")
+        for name in ("eval_every_steps", "val_windows", "rollout_frames", "stats_episodes", "checkpoint_every_steps"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1")

@@ -1,0 +1,168 @@
+"""Training windows: W-frame segments of stored episodes, grouped by scene layout.
+
+A hand-off episode (a held ball released into the bag) has two layouts: before its release frame
+the ball is prescribed (its samples ride on the `held_<name>` body and its rows leave x), from the
+release frame on it is predicted (paper: an object moves from B_t to S_t). Each such part is a
+*phase*; windows never straddle phases, and one batch holds windows of one layout.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch.utils.data import Dataset
+
+from wc.data.store import TrajectoryStore
+
+LayoutKey = tuple[tuple[str, ...], tuple[str, ...]]  # (predicted objects, prescribed link columns)
+
+
+@dataclass(frozen=True)
+class Phase:
+    """Frames [start, stop) of an episode that share one layout."""
+
+    episode: str
+    start: int
+    stop: int
+    layout: LayoutKey
+
+
+@dataclass(frozen=True)
+class Window:
+    """A W-frame segment [start, start + W) inside one phase."""
+
+    phase: Phase
+    start: int
+
+
+def episode_phases(store: TrajectoryStore, eid: str) -> list[Phase]:
+    """The episode's phases: one, or two around a hand-off's release frame (which both share)."""
+    objects, links = store.episode_objects(eid), store.episode_links(eid)
+    frames = store.num_frames(eid)
+    handoff = store.episode_attrs(eid).get("handoff") or {}
+    if not handoff:
+        return [Phase(eid, 0, frames, (tuple(objects), tuple(links)))]
+    release = int(min(handoff.values()))
+    held = {f"held_{name}" for name in handoff}
+    before = (tuple(o for o in objects if o not in handoff), tuple(links))
+    after = (tuple(objects), tuple(l for l in links if l not in held))
+    return [Phase(eid, 0, release + 1, before), Phase(eid, release, frames, after)]
+
+
+def phases_of(store: TrajectoryStore, split: str) -> list[Phase]:
+    """Phases of every episode in `split`."""
+    return [p for eid in store.episodes_where(split=split) for p in episode_phases(store, eid)]
+
+
+def split_tail(phases: list[Phase], fraction: float, window: int) -> tuple[list[Phase], list[Phase]]:
+    """(head, tail) phases: the last `fraction` of each phase held out (tails shorter than `window` dropped)."""
+    head, tail = [], []
+    for p in phases:
+        cut = p.start + int(round((p.stop - p.start) * (1.0 - fraction)))
+        head.append(Phase(p.episode, p.start, cut, p.layout))
+        if p.stop - cut >= window:
+            tail.append(Phase(p.episode, cut, p.stop, p.layout))
+    return head, tail
+
+
+def windows_of(phases: list[Phase], window: int) -> list[Window]:
+    """Every W-frame window inside the phases."""
+    return [Window(p, s) for p in phases for s in range(p.start, p.stop - window + 1)]
+
+
+def read_phase_window(store: TrajectoryStore, phase: Phase, start: int, length: int) -> dict[str, np.ndarray]:
+    """x, v (length, N, 3) of the phase's objects and poses (length, P, 7) of its links then environment bodies."""
+    arrays = store.read_window(phase.episode, start, length)
+    layout = store.episode_layout(phase.episode)
+    rows = np.concatenate([np.arange(layout[o].start, layout[o].stop) for o in phase.layout[0]])
+    links = store.episode_links(phase.episode)
+    cols = [links.index(name) for name in phase.layout[1]]
+    poses = np.concatenate([arrays["link_poses"][:, cols], arrays["env_poses"]], axis=1)
+    return {"x": arrays["x"][:, rows], "v": arrays["v"][:, rows], "poses": poses, "action": arrays["action"]}
+
+
+class WindowDataset(Dataset[dict[str, torch.Tensor]]):
+    """Windows as a map-style dataset.
+
+    item = {x, v (W, N, 3), poses (W, P, 7), action (W, 14), layout ()}: `layout` indexes `layout_keys`.
+    """
+
+    def __init__(self, store_path: str | os.PathLike[str], windows: list[Window], length: int) -> None:
+        if not windows:
+            raise ValueError(f"{store_path}: no {length}-frame training window")
+        self.store_path = Path(store_path)
+        self.windows = windows
+        self.length = length
+        self.layout_keys: list[LayoutKey] = list(dict.fromkeys(w.phase.layout for w in windows))
+        self._layout_index = {k: i for i, k in enumerate(self.layout_keys)}
+        self._store: TrajectoryStore | None = None
+
+    def __len__(self) -> int:
+        return len(self.windows)
+
+    def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
+        if self._store is None:
+            self._store = TrajectoryStore(self.store_path)
+        w = self.windows[i]
+        arrays = read_phase_window(self._store, w.phase, w.start, self.length)
+        item = {k: torch.from_numpy(np.ascontiguousarray(a)) for k, a in arrays.items()}
+        return {**item, "layout": torch.tensor(self._layout_index[w.phase.layout])}
+
+    def __getstate__(self) -> dict[str, object]:
+        return {**self.__dict__, "_store": None}  # workers open their own handle
+
+
+class LayoutBatchSampler(torch.utils.data.Sampler[list[int]]):
+    """Endless seeded batches of `batch_size` window indices, each batch from one layout.
+
+    A layout is drawn with probability proportional to its window count; `rank`/`world_size`
+    give each process of a distributed run its own stream.
+    """
+
+    def __init__(self, windows: list[Window], batch_size: int, seed: int, rank: int = 0) -> None:
+        groups: dict[LayoutKey, list[int]] = {}
+        for i, w in enumerate(windows):
+            groups.setdefault(w.phase.layout, []).append(i)
+        self.groups = [np.asarray(g) for g in groups.values()]
+        sizes = np.array([len(g) for g in self.groups], dtype=np.float64)
+        self.weights = sizes / sizes.sum()
+        self.batch_size = batch_size
+        self.rng = np.random.default_rng([seed, rank])
+
+    def __iter__(self):  # noqa: ANN204 - infinite iterator
+        while True:
+            group = self.groups[self.rng.choice(len(self.groups), p=self.weights)]
+            yield group[self.rng.integers(0, len(group), size=self.batch_size)].tolist()
+
+
+@dataclass(frozen=True)
+class Scales:
+    """Data scales: velocity features are divided by `velocity_m_s`; the head's outputs are in units of the deltas."""
+
+    velocity_m_s: float
+    delta_x_m: float
+    delta_v_m_s: float
+
+
+def data_scales(store: TrajectoryStore, phases: list[Phase], max_episodes: int) -> Scales:
+    """RMS of v, of per-frame Δx and of per-frame Δv over (up to `max_episodes`) training phases."""
+    picked = phases[:: max(1, len(phases) // max_episodes)][:max_episodes]
+    v2 = dx2 = dv2 = 0.0
+    count = moves = 0
+    for p in picked:
+        a = read_phase_window(store, p, p.start, p.stop - p.start)
+        x, v = a["x"].astype(np.float64), a["v"].astype(np.float64)
+        v2 += float((v ** 2).sum())
+        count += v.size
+        dx2 += float((np.diff(x, axis=0) ** 2).sum())
+        dv2 += float((np.diff(v, axis=0) ** 2).sum())
+        moves += v[1:].size
+    if count == 0 or moves == 0:
+        raise ValueError(f"{store.path}: no frames to measure data scales from")
+    floor = 1e-6  # a static dataset still gets finite scales
+    return Scales(velocity_m_s=max(np.sqrt(v2 / count), floor), delta_x_m=max(np.sqrt(dx2 / moves), floor),
+                  delta_v_m_s=max(np.sqrt(dv2 / moves), floor))

@@ -1,0 +1,73 @@
+"""Validation during training: segment loss, the zero-motion reference, held-out rollout error."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+import torch
+
+from wc.data.store import TrajectoryStore
+from wc.model.layout import SceneLayout
+from wc.model.rollout import rollout
+from wc.model.worldcontact import WorldContact
+from wc.train.data import LayoutKey, Phase, Window, read_phase_window
+
+LayoutFor = Callable[[LayoutKey], SceneLayout]
+Projector = Callable[[SceneLayout], object]  # layout -> TopologyProjection | None
+
+
+def segment_loss(x_pred: torch.Tensor, v_pred: torch.Tensor, x_true: torch.Tensor, v_true: torch.Tensor,
+                 lambda_x: float, lambda_v: float) -> torch.Tensor:
+    """Paper Eq. loss: mean over batch, steps and vertices of λx‖x̂ − x‖² + λv‖v̂ − v‖²."""
+    return (lambda_x * (x_pred - x_true).square().sum(-1) + lambda_v * (v_pred - v_true).square().sum(-1)).mean()
+
+
+def load_window(store: TrajectoryStore, window: Window, length: int, device: torch.device) -> dict[str, torch.Tensor]:
+    """One window as a batch of 1 on `device`."""
+    arrays = read_phase_window(store, window.phase, window.start, length)
+    return {k: torch.from_numpy(np.ascontiguousarray(a))[None].to(device) for k, a in arrays.items()}
+
+
+@torch.no_grad()
+def validation_losses(model: WorldContact, store: TrajectoryStore, windows: list[Window], length: int,
+                      layout_for: LayoutFor, projector: Projector, dt: float, lambda_x: float, lambda_v: float,
+                      device: torch.device) -> dict[str, float]:
+    """Mean segment loss of the model and of zero motion (ΔX = ΔV = 0) over `windows`."""
+    was_training = model.training
+    model.eval()
+    model_sum = zero_sum = 0.0
+    for w in windows:
+        batch = load_window(store, w, length, device)
+        layout = layout_for(w.phase.layout)
+        x, v = batch["x"], batch["v"]
+        xp, vp = rollout(model, layout, x[:, 0], v[:, 0], batch["poses"], dt, projector(layout))
+        model_sum += float(segment_loss(xp, vp, x[:, 1:], v[:, 1:], lambda_x, lambda_v))
+        still_x, still_v = x[:, :1].expand_as(x[:, 1:]), v[:, :1].expand_as(v[:, 1:])
+        zero_sum += float(segment_loss(still_x, still_v, x[:, 1:], v[:, 1:], lambda_x, lambda_v))
+    model.train(was_training)
+    n = max(1, len(windows))
+    return {"val_loss": model_sum / n, "zero_motion_loss": zero_sum / n}
+
+
+@torch.no_grad()
+def rollout_error(model: WorldContact, store: TrajectoryStore, phases: list[Phase], frames: int,
+                  layout_for: LayoutFor, projector: Projector, dt: float, device: torch.device) -> dict[str, float]:
+    """Position MSE (m², mean over vertices and frames of ‖x̂ − x‖²) of autoregressive rollouts from each phase's first frame."""
+    was_training = model.training
+    model.eval()
+    errors, zero = [], []
+    for p in phases:
+        length = min(frames + 1, p.stop - p.start)
+        if length < 2:
+            continue
+        batch = load_window(store, Window(p, p.start), length, device)
+        layout = layout_for(p.layout)
+        x = batch["x"]
+        xp, _ = rollout(model, layout, x[:, 0], batch["v"][:, 0], batch["poses"], dt, projector(layout))
+        errors.append(float((xp - x[:, 1:]).square().sum(-1).mean()))
+        zero.append(float((x[:, :1] - x[:, 1:]).square().sum(-1).mean()))
+    model.train(was_training)
+    if not errors:
+        return {"rollout_position_mse_m2": float("nan"), "rollout_zero_motion_mse_m2": float("nan")}
+    return {"rollout_position_mse_m2": float(np.mean(errors)), "rollout_zero_motion_mse_m2": float(np.mean(zero))}

@@ -1,0 +1,217 @@
+"""Training WorldContact: base stage, then the projection stage, on one process or under torchrun (DDP).
+
+Output directory (written under `<out>.partial/`, renamed into place when both stages finish, so an
+interrupted run leaves no half-written model; `resume=True` continues from the partial's last state):
+    model.safetensors + model.json   best validation loss of the last stage that ran
+    base.safetensors + base.json     best of the base stage
+    last.safetensors + last.json, last_state.pt   the latest step (resume)
+"""
+
+from __future__ import annotations
+
+import shutil
+import statistics
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+from torch.nn.parallel import DistributedDataParallel
+from tqdm import tqdm
+
+from wc.data.store import TrajectoryStore
+from wc.model.config import ModelConfig
+from wc.model.layout import SceneLayout, scene_layout
+from wc.model.rollout import rollout
+from wc.model.worldcontact import WorldContact
+from wc.train import distributed
+from wc.train.checkpoint import load_state, save_state, save_weights
+from wc.train.config import TrainConfig
+from wc.train.data import (LayoutBatchSampler, LayoutKey, Phase, Scales, Window, WindowDataset, data_scales,
+                           phases_of, split_tail, windows_of)
+from wc.train.evaluation import rollout_error, segment_loss, validation_losses
+from wc.train.schedule import learning_rate
+
+
+@dataclass
+class TrainData:
+    """Which windows train, which validate, and the data scales."""
+
+    train_windows: list[Window]
+    val_windows: list[Window]  # fixed, seeded subset
+    val_phases: list[Phase]  # held-out rollouts
+    scales: Scales
+    validation: str  # how validation data was chosen
+
+
+def prepare_data(store: TrajectoryStore, cfg: TrainConfig) -> TrainData:
+    """Windows of the train split; validation from the val split, else from held-out tails of train episodes."""
+    train_phases = phases_of(store, "train")
+    if not train_phases:
+        raise ValueError(f"{store.path}: no train episodes")
+    val_phases = phases_of(store, "val")
+    validation = "val split"
+    if not val_phases:
+        train_phases, val_phases = split_tail(train_phases, cfg.holdout_fraction, cfg.window)
+        validation = f"last {cfg.holdout_fraction:.0%} of each train episode (the store has no val split)"
+    train_windows = windows_of(train_phases, cfg.window)
+    val_all = windows_of(val_phases, cfg.window)
+    if not train_windows or not val_all:
+        raise ValueError(f"{store.path}: {len(train_windows)} train and {len(val_all)} validation windows of "
+                         f"{cfg.window} frames; need at least one of each")
+    pick = np.random.default_rng(cfg.seed).permutation(len(val_all))[: cfg.val_windows]
+    return TrainData(train_windows, [val_all[i] for i in sorted(pick)], val_phases,
+                     data_scales(store, train_phases, cfg.stats_episodes), validation)
+
+
+class SegmentRollout(nn.Module):
+    """The whole W-step rollout as one forward, so DDP sees one forward per backward."""
+
+    def __init__(self, model: WorldContact) -> None:
+        super().__init__()
+        self.model = model
+
+    def forward(self, layout: SceneLayout, x0: torch.Tensor, v0: torch.Tensor, poses: torch.Tensor, dt: float,
+                projection: nn.Module | None) -> tuple[torch.Tensor, torch.Tensor]:
+        return rollout(self.model, layout, x0, v0, poses, dt, projection)
+
+
+def _layouts(store: TrajectoryStore, model_cfg: ModelConfig, device: torch.device):  # noqa: ANN202
+    cache: dict[LayoutKey, SceneLayout] = {}
+
+    def layout_for(key: LayoutKey) -> SceneLayout:
+        if key not in cache:
+            cache[key] = scene_layout(store, list(key[0]), list(key[1]), model_cfg.tag_scale).to(device)
+        return cache[key]
+    return layout_for
+
+
+def train(store_path: str | Path, out_dir: str | Path, model_cfg: ModelConfig, cfg: TrainConfig, *,
+          resume: bool = False, meta: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Train both stages; returns the report dict (rank 0's; other ranks return {})."""
+    procs = distributed.start(cfg.device)
+    torch.manual_seed(cfg.seed)
+    store = TrajectoryStore(store_path)
+    data = prepare_data(store, cfg)
+    out_dir, work = Path(out_dir), Path(f"{out_dir}.partial")
+    model = WorldContact(model_cfg, **asdict(data.scales)).to(procs.device)
+    layout_for = _layouts(store, model_cfg, procs.device)
+    optimizer = torch.optim.AdamW(model.parameters(), lr=cfg.base.start_lr, betas=cfg.betas,
+                                  weight_decay=cfg.weight_decay)
+    step, history, best = 0, [], {"base": float("inf"), "projection": float("inf")}
+    state_path = work / "last_state.pt"
+    if resume and state_path.is_file():
+        state = load_state(state_path)
+        model.load_state_dict(state["model"])
+        optimizer.load_state_dict(state["optimizer"])
+        step, history, best = state["step"], state["history"], state["best"]
+    elif procs.main:
+        shutil.rmtree(work, ignore_errors=True)
+    distributed.barrier(procs)
+    work.mkdir(parents=True, exist_ok=True)
+    runner: nn.Module = SegmentRollout(model)
+    if procs.distributed:
+        runner = DistributedDataParallel(runner, device_ids=[procs.device] if procs.device.type == "cuda" else None)
+    dataset = WindowDataset(store_path, data.train_windows, cfg.window)
+    sampler = LayoutBatchSampler(data.train_windows, cfg.batch_size, cfg.seed + step, procs.rank)
+    loader = iter(torch.utils.data.DataLoader(dataset, batch_sampler=sampler, num_workers=cfg.num_workers))
+    total = cfg.base.steps + cfg.projection.steps
+    autocast = cfg.autocast_bf16 and procs.device.type == "cuda"
+    step_times, recent = [], []
+    meta = {**(meta or {}), "dt": store.dt, "validation": data.validation}
+    bar = tqdm(total=total, initial=step, desc="train", disable=not procs.main)
+    while step < total:
+        stage = "base" if step < cfg.base.steps else "projection"
+        schedule = cfg.base if stage == "base" else cfg.projection
+        lr = learning_rate(schedule, step if stage == "base" else step - cfg.base.steps)
+        for group in optimizer.param_groups:
+            group["lr"] = lr
+        projector = _projector(model, cfg, stage)
+        batch = next(loader)
+        layout = layout_for(dataset.layout_keys[int(batch["layout"][0])])
+        x, v, poses = (batch[k].to(procs.device) for k in ("x", "v", "poses"))
+        _sync(procs.device)
+        t0 = time.perf_counter()
+        with torch.autocast("cuda", dtype=torch.bfloat16, enabled=autocast):
+            xp, vp = runner(layout, x[:, 0], v[:, 0], poses, store.dt, projector(layout))
+        loss = segment_loss(xp.float(), vp.float(), x[:, 1:], v[:, 1:], cfg.lambda_x, cfg.lambda_v)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        if cfg.grad_clip > 0:
+            torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
+        optimizer.step()
+        _sync(procs.device)
+        step_times.append(time.perf_counter() - t0)
+        recent.append(float(loss.detach()))
+        if not np.isfinite(recent[-1]):
+            raise FloatingPointError(f"train: loss became {recent[-1]} at step {step} ({stage} stage)")
+        step += 1
+        bar.update(1)
+        stage_end = step in (cfg.base.steps, total)
+        if procs.main and (step % cfg.eval_every_steps == 0 or stage_end):
+            losses = validation_losses(model, store, data.val_windows, cfg.window, layout_for, projector, store.dt,
+                                       cfg.lambda_x, cfg.lambda_v, procs.device)
+            losses.update(rollout_error(model, store, data.val_phases, cfg.rollout_frames, layout_for, projector,
+                                        store.dt, procs.device))
+            history.append({"step": step, "stage": stage, "lr": lr, "train_loss": float(np.mean(recent)), **losses})
+            recent = []
+            bar.set_postfix(train=f"{history[-1]['train_loss']:.3g}", val=f"{losses['val_loss']:.3g}")
+            if losses["val_loss"] < best[stage]:
+                best[stage] = losses["val_loss"]
+                save_weights(model, work / f"{stage}.safetensors",
+                             {**meta, "step": step, "stage": stage, "projection": stage == "projection", **losses})
+        if procs.main and (step % cfg.checkpoint_every_steps == 0 or stage_end):
+            save_weights(model, work / "last.safetensors", {**meta, "step": step, "stage": stage,
+                                                            "projection": stage == "projection"})
+            save_state(state_path, {"model": model.state_dict(), "optimizer": optimizer.state_dict(), "step": step,
+                                    "history": history, "best": best})
+    bar.close()
+    distributed.barrier(procs)
+    report: dict[str, Any] = {}
+    if procs.main:
+        report = _finish(model, work, out_dir, cfg, data, history, step_times, procs)
+    distributed.barrier(procs)
+    distributed.stop(procs)
+    return report
+
+
+def _projector(model: WorldContact, cfg: TrainConfig, stage: str):  # noqa: ANN202
+    if stage == "base":
+        return lambda layout: None
+    return lambda layout: model.projection(layout, cfg.smoothing_iterations, cfg.smoothing_weight,
+                                           cfg.constraint_iterations, cfg.edge_ratio)
+
+
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def _finish(model: WorldContact, work: Path, out_dir: Path, cfg: TrainConfig, data: TrainData,
+            history: list[dict[str, Any]], step_times: list[float], procs: distributed.Processes) -> dict[str, Any]:
+    """Promote the final stage's best weights to model.*, rename the work dir into place, build the report."""
+    final = "projection" if cfg.projection.steps > 0 else "base"
+    for suffix in (".safetensors", ".json"):
+        shutil.copyfile(work / f"{final}{suffix}", work / f"model{suffix}")
+    if out_dir.exists():
+        shutil.rmtree(out_dir)
+    work.rename(out_dir)
+    timed = step_times[min(len(step_times) - 1, 5):] if step_times else []  # skip warm-up steps
+    step_s = statistics.median(timed) if timed else float("nan")
+    last = history[-1] if history else {}
+    return {
+        "parameters": model.parameter_counts(), "final_stage": final, "validation": data.validation,
+        "steps": {"base": cfg.base.steps, "projection": cfg.projection.steps},
+        "train_windows": len(data.train_windows), "val_windows": len(data.val_windows),
+        "scales": asdict(data.scales), "history": history,
+        "best_val_loss": min((h["val_loss"] for h in history if h["stage"] == final), default=float("nan")),
+        "zero_motion_val_loss": last.get("zero_motion_loss", float("nan")),
+        "rollout_position_mse_m2": last.get("rollout_position_mse_m2", float("nan")),
+        "rollout_zero_motion_mse_m2": last.get("rollout_zero_motion_mse_m2", float("nan")),
+        "s_per_step_median": step_s, "processes": procs.world_size,
+        "samples_per_s": cfg.batch_size * procs.world_size / step_s if step_s == step_s else float("nan"),
+        "window": cfg.window, "batch_size": cfg.batch_size, "autocast_bf16": cfg.autocast_bf16,
+    }
