@@ -68,12 +68,7 @@ def simulate(params: dict[str, Any], out: str | Path = "data/source/raw.zarr",
     with TrajectoryWriter(out, dt=sim_cfg.frame_dt_s, substeps=sim_cfg.substeps, params_hash=phash,
                           created_by="stages.simulate", object_order=list(union.objects),
                           link_names=list(union.link_names), env_names=list(union.env_names)) as writer:
-        for name, mesh in union.objects.items():
-            material = getattr(sim_cfg, name).__dict__
-            writer.add_object(name, mesh.vertices, mesh.faces, mesh.rest_uv, mesh.vertex_area,
-                              kind=union.object_kinds[name], tag=mesh.tag, material=material)
-        for samples in union.samples:
-            writer.add_prescribed(samples.name, samples.local_points, samples.local_normals, samples.tag, samples.body)
+        writer.add_scene(union, {name: getattr(sim_cfg, name).__dict__ for name in union.objects})
         for task_index, task in enumerate(tasks):
             task_started = time.perf_counter()
             world = build_task_world(scene_cfg, sim_cfg, task)

@@ -76,11 +76,7 @@ def write_synthetic_store(path: Path, params: dict[str, Any], episodes: list[tup
     with TrajectoryWriter(path, dt=DT, substeps=20, params_hash="synthetic", created_by="tests",
                           object_order=list(full.objects), link_names=list(full.link_names),
                           env_names=list(full.env_names), chunk_frames=8) as w:
-        for name, mesh in full.objects.items():
-            w.add_object(name, mesh.vertices, mesh.faces, mesh.rest_uv, mesh.vertex_area,
-                         kind=full.object_kinds[name], tag=mesh.tag, material={})
-        for s in full.samples:
-            w.add_prescribed(s.name, s.local_points, s.local_normals, s.tag, s.body)
+        w.add_scene(full)
         for i, (kind, split) in enumerate(episodes):
             arrays, layout = _episode(scene_cfg, kind, frames, rng)
             w.add_episode(**arrays, episode_id=f"ep_{i:06d}", task=kind, seed=i, cell=0, speed=0.1, amplitude=0.0,

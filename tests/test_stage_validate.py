@@ -83,11 +83,7 @@ def _write_raw(path: Path, scene_cfg: SceneConfig, episodes: dict[str, tuple[str
     with TrajectoryWriter(path, dt=0.04, substeps=20, params_hash="raw-hash", created_by="test",
                           object_order=list(full.objects), link_names=list(full.link_names),
                           env_names=list(full.env_names), chunk_frames=4) as w:
-        for name, mesh in full.objects.items():
-            w.add_object(name, mesh.vertices, mesh.faces, mesh.rest_uv, mesh.vertex_area,
-                         kind=full.object_kinds[name], tag=mesh.tag, material={})
-        for s in full.samples:
-            w.add_prescribed(s.name, s.local_points, s.local_normals, s.tag, s.body)
+        w.add_scene(full)
         for i, (eid, (task, kind)) in enumerate(episodes.items()):
             arrays, layout = _episode(scene_cfg, kind)
             rejected = kind == "not_lifted"

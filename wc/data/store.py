@@ -41,11 +41,14 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import zarr
 from zarr.codecs import ZstdCodec
+
+if TYPE_CHECKING:
+    from wc.scene.scene import Scene
 
 SCHEMA = "worldcontact-trajectories/1"
 SCHEMA_PREFIX = "worldcontact-trajectories/"
@@ -371,6 +374,14 @@ class TrajectoryWriter:
         _write_array(g, "local_normals", nrm)
         g.attrs.update({"tag": int(tag), "link": link})
         self._prescribed.append(name)
+
+    def add_scene(self, scene: Scene, materials: Mapping[str, Mapping[str, Any]] | None = None) -> None:
+        """Every object mesh (with its material, by object name) and prescribed sample set of a built scene."""
+        for name, mesh in scene.objects.items():
+            self.add_object(name, mesh.vertices, mesh.faces, mesh.rest_uv, mesh.vertex_area,
+                            kind=scene.object_kinds[name], tag=mesh.tag, material=(materials or {}).get(name, {}))
+        for samples in scene.samples:
+            self.add_prescribed(samples.name, samples.local_points, samples.local_normals, samples.tag, samples.body)
 
     # -- episodes ---------------------------------------------------------------------------
     def add_episode(self, x: np.ndarray, v: np.ndarray, action: np.ndarray, link_poses: np.ndarray,

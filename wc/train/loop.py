@@ -119,7 +119,6 @@ def train(store_path: str | Path, out_dir: str | Path, model_cfg: ModelConfig, c
     sampler = LayoutBatchSampler(data.train_windows, cfg.batch_size, cfg.seed + step, procs.rank)
     loader = iter(torch.utils.data.DataLoader(dataset, batch_sampler=sampler, num_workers=cfg.num_workers))
     total = cfg.base.steps + cfg.projection.steps
-    autocast = cfg.autocast_bf16 and procs.device.type == "cuda"
     step_times, recent = [], []
     meta = {**(meta or {}), "dt": store.dt, "validation": data.validation}
     bar = tqdm(total=total, initial=step, desc="train", disable=not procs.main)
@@ -133,19 +132,9 @@ def train(store_path: str | Path, out_dir: str | Path, model_cfg: ModelConfig, c
         batch = next(loader)
         layout = layout_for(dataset.layout_keys[int(batch["layout"][0])])
         x, v, poses = (batch[k].to(procs.device) for k in ("x", "v", "poses"))
-        _sync(procs.device)
         t0 = time.perf_counter()
-        with torch.autocast("cuda", dtype=torch.bfloat16, enabled=autocast):
-            xp, vp = runner(layout, x[:, 0], v[:, 0], poses, store.dt, projector(layout))
-        loss = segment_loss(xp.float(), vp.float(), x[:, 1:], v[:, 1:], cfg.lambda_x, cfg.lambda_v)
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        if cfg.grad_clip > 0:
-            torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
-        optimizer.step()
-        _sync(procs.device)
+        recent.append(optimisation_step(runner, optimizer, layout, x, v, poses, store.dt, projector(layout), cfg))
         step_times.append(time.perf_counter() - t0)
-        recent.append(float(loss.detach()))
         if not np.isfinite(recent[-1]):
             raise FloatingPointError(f"train: loss became {recent[-1]} at step {step} ({stage} stage)")
         step += 1
@@ -178,16 +167,27 @@ def train(store_path: str | Path, out_dir: str | Path, model_cfg: ModelConfig, c
     return report
 
 
+def optimisation_step(runner: nn.Module, optimizer: torch.optim.Optimizer, layout: SceneLayout, x: torch.Tensor,
+                      v: torch.Tensor, poses: torch.Tensor, dt: float, projection: nn.Module | None,
+                      cfg: TrainConfig) -> float:
+    """One AdamW step on a batch of windows x, v (B, W, N, 3), poses (B, W, P, 7); returns the loss (synchronised)."""
+    autocast = cfg.autocast_bf16 and x.device.type == "cuda"
+    with torch.autocast("cuda", dtype=torch.bfloat16, enabled=autocast):
+        xp, vp = runner(layout, x[:, 0], v[:, 0], poses, dt, projection)
+    loss = segment_loss(xp.float(), vp.float(), x[:, 1:], v[:, 1:], cfg.lambda_x, cfg.lambda_v)
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    if cfg.grad_clip > 0:
+        torch.nn.utils.clip_grad_norm_([p for g in optimizer.param_groups for p in g["params"]], cfg.grad_clip)
+    optimizer.step()
+    return float(loss.detach())  # waits for the device: the step is complete when this returns
+
+
 def _projector(model: WorldContact, cfg: TrainConfig, stage: str):  # noqa: ANN202
     if stage == "base":
         return lambda layout: None
     return lambda layout: model.projection(layout, cfg.smoothing_iterations, cfg.smoothing_weight,
                                            cfg.constraint_iterations, cfg.edge_ratio)
-
-
-def _sync(device: torch.device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
 
 
 def _finish(model: WorldContact, work: Path, out_dir: Path, cfg: TrainConfig, data: TrainData,
