@@ -160,6 +160,9 @@ def markdown(report: dict[str, Any]) -> str:
              "4.367 / 11.236 / 15.873 s without)", "",
              "| W | hierarchical compression | s per step (median) | peak GPU memory GiB |", "|---|---|---|---|"]
     for r in report["training"]:
+        if "out_of_memory" in r:
+            lines.append(f"| {r['window']} | {'yes' if r['compress'] else 'no'} | out of GPU memory | - |")
+            continue
         lines.append(f"| {r['window']} | {'yes' if r['compress'] else 'no'} | {r['s_per_step_median']:.3f} | "
                      f"{r['peak_memory_gib']:.1f} |")
     lines += ["", "## Rollout (no gradients)", "",
@@ -194,7 +197,11 @@ def main(argv: list[str] | None = None) -> None:
         for compress in (True, False):
             mc = replace(model_cfg, compress=compress)
             for w in (int(t) for t in args.windows.split(",")):
-                report["training"].append(time_training(store, mc, cfg, w, args.steps, device))
+                try:
+                    report["training"].append(time_training(store, mc, cfg, w, args.steps, device))
+                except torch.OutOfMemoryError as err:  # a finding, not a crash: record it and go on
+                    report["training"].append({"window": w, "compress": compress, "out_of_memory": str(err)[:200]})
+                    torch.cuda.empty_cache()
                 print(report["training"][-1], flush=True)
                 write_json_atomic(out, report)
             for batch, autocast in ((1, False), (1, cfg.autocast_bf16), (args.batch, cfg.autocast_bf16)):

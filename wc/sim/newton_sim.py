@@ -240,9 +240,13 @@ class NewtonSimulator:
         n = len(states)
         held = np.stack(self._batch(list(actions)))
         self._write_state(self._batch(list(states)), held)
-        for _ in range(int(round(seconds / self.cfg.frame_dt_s))):
-            self._advance_frame(held, held)
+        frames = int(round(seconds / self.cfg.frame_dt_s))
         x, v = self._read_state()
+        for _ in range(frames):
+            previous = x
+            self._advance_frame(held, held)
+            x = self._read_state()[0]
+            v = (x - previous) / self.cfg.frame_dt_s  # the frame-mean velocity, as rollout_batch records it
         return [ObjectState(x[w], v[w]) for w in range(n)]
 
     def rollout_batch(self, initial: list[ObjectState], actions: list[np.ndarray],
@@ -266,6 +270,11 @@ class NewtonSimulator:
                 on_frame()
         x = np.stack([f[0] for f in frames], axis=1)  # (W, T, N, 3)
         v = np.stack([f[1] for f in frames], axis=1)
+        # Recorded velocity = the frame's mean velocity (x_k - x_{k-1}) / Δt. The solver's last-substep
+        # velocity carries VBD contact jitter as large as the motion itself (a bag resting on the table
+        # "moves" at cm/s); the frame mean is smooth and is the velocity WorldContact's projection
+        # produces (V = (X_{t+Δt} - X_t) / Δt). Frame 0 keeps the state it started from.
+        v[:, 1:] = (x[:, 1:] - x[:, :-1]) / self.cfg.frame_dt_s
         return [(x[w], v[w]) for w in range(n)]
 
     def rollout(self, initial: ObjectState, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

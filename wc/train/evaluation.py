@@ -33,7 +33,7 @@ def load_window(store: TrajectoryStore, window: Window, length: int, device: tor
 def validation_losses(model: WorldContact, store: TrajectoryStore, windows: list[Window], length: int,
                       layout_for: LayoutFor, projector: Projector, dt: float, lambda_x: float, lambda_v: float,
                       device: torch.device) -> dict[str, float]:
-    """Mean segment loss of the model and of zero motion (ΔX = ΔV = 0) over `windows`."""
+    """Mean segment loss of the model and of zero motion (x stays where it is, v = 0) over `windows`."""
     was_training = model.training
     model.eval()
     model_sum = zero_sum = 0.0
@@ -43,8 +43,8 @@ def validation_losses(model: WorldContact, store: TrajectoryStore, windows: list
         x, v = batch["x"], batch["v"]
         xp, vp = rollout(model, layout, x[:, 0], v[:, 0], batch["poses"], dt, projector(layout))
         model_sum += float(segment_loss(xp, vp, x[:, 1:], v[:, 1:], lambda_x, lambda_v))
-        still_x, still_v = x[:, :1].expand_as(x[:, 1:]), v[:, :1].expand_as(v[:, 1:])
-        zero_sum += float(segment_loss(still_x, still_v, x[:, 1:], v[:, 1:], lambda_x, lambda_v))
+        still_x = x[:, :1].expand_as(x[:, 1:])  # zero motion: x stays, v = 0
+        zero_sum += float(segment_loss(still_x, torch.zeros_like(still_x), x[:, 1:], v[:, 1:], lambda_x, lambda_v))
     model.train(was_training)
     n = max(1, len(windows))
     return {"val_loss": model_sum / n, "zero_motion_loss": zero_sum / n}
