@@ -15,7 +15,7 @@ from torch.utils.data import DataLoader
 from zarr.codecs import ZstdCodec
 from zarr.storage import LocalStore
 
-from wc.data.segments import SegmentDataset, SegmentSampler
+from wc.train.data import LayoutBatchSampler, WindowDataset, phases_of, windows_of
 from wc.data.store import (
     EPISODE_ARRAYS, SCHEMA, TrajectoryStore, TrajectoryWriter, copy_store,
 )
@@ -297,38 +297,37 @@ def test_copy_store_subset_with_updates(tmp_path: Path) -> None:
     assert not (tmp_path / "bad.zarr").exists() and _leftovers(tmp_path) == []
 
 
-def test_segment_sampler(tmp_path: Path) -> None:
+def test_training_windows_and_layout_sampler(tmp_path: Path) -> None:
     path = tmp_path / "s.zarr"
     _make_store(path)  # T = 40 (train), 3 (val), 20 (train)
     s = TrajectoryStore(path)
-    train = SegmentSampler(s, 5, split="train", seed=7)
-    assert len(train) == (40 - 4) + (20 - 4)
-    assert {e for e, _ in train.segments} == {"ep_000000", "ep_000002"}
-    a, b = train.sample(50), SegmentSampler(s, 5, split="train", seed=7).sample(50)
-    assert a == b and a != SegmentSampler(s, 5, split="train", seed=8).sample(50)
-    assert all(0 <= st <= s.num_frames(e) - 5 for e, st in a)
-    assert len(SegmentSampler(s, 3, split="val", seed=0)) == 1
-    with pytest.raises(ValueError, match="no 5-frame window"):
-        SegmentSampler(s, 5, split="val", seed=0)  # the only val episode has 3 frames
+    windows = windows_of(phases_of(s, "train"), 5)
+    assert len(windows) == (40 - 4) + (20 - 4)
+    assert {w.phase.episode for w in windows} == {"ep_000000", "ep_000002"}
+    assert all(0 <= w.start <= s.num_frames(w.phase.episode) - 5 for w in windows)
+    def first_batches(seed: int) -> list[list[int]]:
+        batches = iter(LayoutBatchSampler(windows, 3, seed))
+        return [next(batches) for _ in range(4)]
+    assert first_batches(7) == first_batches(7) != first_batches(8)
+    assert len(windows_of(phases_of(s, "val"), 3)) == 1
+    assert windows_of(phases_of(s, "val"), 5) == []  # the only val episode has 3 frames
 
 
-def test_segment_dataset_dataloader(tmp_path: Path) -> None:
+def test_window_dataset_dataloader(tmp_path: Path) -> None:
     path = tmp_path / "s.zarr"
     episodes = dict(_make_store(path))
-    ds = SegmentDataset(path, 5, "train")
-    eid, start = ds.segments[3]
+    ds = WindowDataset(path, windows_of(phases_of(TrajectoryStore(path), "train"), 5), 5)
+    w = ds.windows[3]
     item = ds[3]
     assert item["x"].dtype == torch.float32
-    torch.testing.assert_close(item["v"], torch.from_numpy(episodes[eid]["v"][start:start + 5].astype(np.float32)))
-    loader = DataLoader(ds, batch_size=4, num_workers=2, shuffle=True,
-                        generator=torch.Generator().manual_seed(0))
+    torch.testing.assert_close(item["v"], torch.from_numpy(episodes[w.phase.episode]["v"][w.start:w.start + 5]
+                                                           .astype(np.float32)))
+    loader = DataLoader(ds, batch_size=4, num_workers=2, shuffle=True, generator=torch.Generator().manual_seed(0))
     batches = list(loader)
     assert sum(len(b["x"]) for b in batches) == len(ds) == 52
     b = batches[0]
     assert b["x"].shape == (4, 5, N, 3) and b["action"].shape == (4, 5, 14)
-    assert b["link_poses"].shape == (4, 5, len(LINKS), 7) and b["env_poses"].shape == (4, 5, len(ENVS), 7)
-
-
+    assert b["poses"].shape == (4, 5, len(LINKS) + len(ENVS), 7)
 
 def test_episode_with_a_subset_of_objects_and_links(tmp_path: Path) -> None:
     """An episode may hold only some objects and link columns; the reader returns its layout."""
