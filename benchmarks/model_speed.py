@@ -34,7 +34,7 @@ from wc.agent.runner import episode_seed
 from wc.config import add_params_arguments, load_section, read_params
 from wc.data.store import TrajectoryStore, TrajectoryWriter
 from wc.model.config import ModelConfig
-from wc.model.layout import scene_layout
+from wc.model.layout import SceneLayout, scene_layout
 from wc.model.rollout import rollout
 from wc.model.worldcontact import WorldContact
 from wc.reports import environment_info, write_json_atomic
@@ -44,7 +44,7 @@ from wc.sim.config import SimConfig
 from wc.sim.newton_sim import NewtonSimulator
 from wc.tasks.base import InfeasibleEpisode, get_task
 from wc.train.config import TrainConfig
-from wc.train.data import Phase, data_scales, read_phase_window
+from wc.train.data import Phase, data_scales, episode_phases, read_phase_window
 from wc.train.loop import SegmentRollout, optimisation_step
 
 TASK = "lift_handle"
@@ -93,14 +93,20 @@ def _sync(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
+def _episode_model(store: TrajectoryStore, model_cfg: ModelConfig,
+                   device: torch.device) -> tuple[Phase, WorldContact, SceneLayout]:
+    """The benchmark episode's (single) phase, a model scaled to it, and its layout, on `device`."""
+    phase = episode_phases(store, store.episode_ids[0])[0]
+    scales = data_scales(store, [phase], 1)
+    model = WorldContact(model_cfg, scales.velocity_m_s, scales.delta_x_m, scales.delta_v_m_s).to(device)
+    return phase, model, scene_layout(store, list(phase.layout[0]), list(phase.layout[1]), model_cfg.tag_scale).to(device)
+
+
 def time_training(store: TrajectoryStore, model_cfg: ModelConfig, cfg: TrainConfig, window: int, steps: int,
                   device: torch.device) -> dict[str, Any]:
     """Median seconds per optimisation step on W-frame windows of the stored episode."""
-    eid = store.episode_ids[0]
-    phase = Phase(eid, 0, store.num_frames(eid), (tuple(store.episode_objects(eid)), tuple(store.episode_links(eid))))
-    scales = data_scales(store, [phase], 1)
-    model = WorldContact(model_cfg, scales.velocity_m_s, scales.delta_x_m, scales.delta_v_m_s).to(device).train()
-    layout = scene_layout(store, list(phase.layout[0]), list(phase.layout[1]), model_cfg.tag_scale).to(device)
+    phase, model, layout = _episode_model(store, model_cfg, device)
+    model.train()
     optimizer = torch.optim.AdamW(model.parameters(), lr=1e-5, betas=cfg.betas, weight_decay=cfg.weight_decay)
     runner = SegmentRollout(model)
     starts = np.linspace(0, phase.stop - window, steps + 2).astype(int)
@@ -123,12 +129,9 @@ def time_training(store: TrajectoryStore, model_cfg: ModelConfig, cfg: TrainConf
 def time_rollout(store: TrajectoryStore, model_cfg: ModelConfig, frames: int, batch: int, autocast: bool,
                  device: torch.device) -> dict[str, Any]:
     """Simulated seconds per wall second of a `frames`-frame rollout of `batch` copies of the episode."""
-    eid = store.episode_ids[0]
-    phase = Phase(eid, 0, store.num_frames(eid), (tuple(store.episode_objects(eid)), tuple(store.episode_links(eid))))
+    phase, model, layout = _episode_model(store, model_cfg, device)
+    model.eval()
     frames = min(frames, phase.stop - 1)
-    scales = data_scales(store, [phase], 1)
-    model = WorldContact(model_cfg, scales.velocity_m_s, scales.delta_x_m, scales.delta_v_m_s).to(device).eval()
-    layout = scene_layout(store, list(phase.layout[0]), list(phase.layout[1]), model_cfg.tag_scale).to(device)
     a = {n: torch.from_numpy(arr).to(device) for n, arr in read_phase_window(store, phase, 0, frames + 1).items()}
     x0 = a["x"][0].expand(batch, -1, -1).contiguous()
     v0 = a["v"][0].expand(batch, -1, -1).contiguous()
