@@ -37,7 +37,7 @@ class SceneLayout:
     sample_normals: torch.Tensor  # (M, 3) body-local unit
     sample_tags: torch.Tensor  # (M,) tag * tag_scale
     sample_body: torch.Tensor  # (M,) long: column of the body in the stacked poses
-    sample_is_environment: torch.Tensor  # (M,) bool
+    num_controllable: int  # samples [0, num_controllable) ride on robot bodies, the rest on the environment
     cache: dict[str, Any] = field(default_factory=dict, compare=False, repr=False)  # e.g. topology pairs
 
     @property
@@ -75,7 +75,8 @@ def scene_layout(store: TrajectoryStore, objects: list[str], links: list[str], t
     rest_t = torch.from_numpy(rest.astype(np.float32))
     bodies = tuple(links) + tuple(store.env_names)
     column = {b: i for i, b in enumerate(bodies)}
-    sets = [s for s in store.prescribed.values() if s.link in column]
+    # controllable sets first, so one slice splits the samples into C and E at every step
+    sets = sorted((s for s in store.prescribed.values() if s.link in column), key=lambda s: s.link in store.env_names)
     if not sets:
         raise ValueError(f"{store.path}: no prescribed sample set on any of {bodies}")
     return SceneLayout(
@@ -90,8 +91,7 @@ def scene_layout(store: TrajectoryStore, objects: list[str], links: list[str], t
         sample_tags=torch.from_numpy(np.concatenate([np.full(len(s.local_points), s.tag * tag_scale, np.float32)
                                                      for s in sets])),
         sample_body=torch.from_numpy(np.concatenate([np.full(len(s.local_points), column[s.link]) for s in sets])),
-        sample_is_environment=torch.from_numpy(np.concatenate([np.full(len(s.local_points), s.link in store.env_names)
-                                                               for s in sets])),
+        num_controllable=sum(len(s.local_points) for s in sets if s.link not in store.env_names),
     )
 
 
@@ -113,6 +113,6 @@ def boundary_samples(layout: SceneLayout, poses_now: torch.Tensor, poses_next: t
     tags = layout.sample_tags.expand(x_next.shape[0], -1)[..., None]
     attributes = torch.cat([tags, normals], dim=-1)
     v = (x_next - x_now) / dt
-    env = layout.sample_is_environment
-    return (Samples(x_next[:, ~env], v[:, ~env], attributes[:, ~env]),
-            Samples(x_next[:, env], v[:, env], attributes[:, env]))
+    c = layout.num_controllable
+    return (Samples(x_next[:, :c], v[:, :c], attributes[:, :c]),
+            Samples(x_next[:, c:], v[:, c:], attributes[:, c:]))
