@@ -26,7 +26,7 @@ from wc.model.rollout import rollout
 from wc.model.worldcontact import WorldContact
 from wc.train.checkpoint import load_model, save_weights
 from wc.train.config import Schedule, TrainConfig
-from wc.train.data import episode_phases, read_phase_window, split_tail, windows_of
+from wc.train.data import episode_phases, read_phase_window, split_blocks, windows_of
 from wc.train.evaluation import segment_loss
 from wc.train.schedule import learning_rate
 
@@ -72,13 +72,23 @@ def test_handoff_episode_splits_into_two_layouts(store_path):
     assert all(w.start + 5 <= w.phase.stop for w in windows_of([before, after], 5))
 
 
-def test_tail_holdout_never_overlaps_training_frames(store_path):
+def test_block_holdout_interleaves_without_sharing_a_frame(store_path):
     store = TrajectoryStore(store_path)
     phases = [p for e in store.episodes_where(split="train") for p in episode_phases(store, e)]
-    head, tail = split_tail(phases, 0.5, 3)
-    for h in head:
-        for t in (t for t in tail if t.episode == h.episode and t.layout == h.layout):
-            assert h.stop <= t.start
+    train, held = split_blocks(phases, 0.5, 3, 3)
+    assert held, "a 0.5 holdout of 3-frame blocks must hold something out"
+    trains_after_held = False
+    for p in phases:
+        mine = lambda parts: [q for q in parts if q.episode == p.episode and q.layout == p.layout]  # noqa: E731
+        train_frames = {f for q in mine(train) for f in range(q.start, q.stop)}
+        held_frames = {f for q in mine(held) for f in range(q.start, q.stop)}
+        assert not train_frames & held_frames
+        assert train_frames | held_frames <= set(range(p.start, p.stop))
+        if held_frames:  # block 0 trains; interleaved: some phase trains after a held block too
+            assert min(train_frames) < min(held_frames)
+            trains_after_held |= any(f > min(held_frames) for f in train_frames)
+    assert trains_after_held
+    assert all(q.stop - q.start >= 3 for q in train + held)
 
 
 def test_schedule_warms_up_then_decays():

@@ -44,7 +44,8 @@ class TrainConfig:
     eval_every_steps: int = 50  # validation loss + held-out rollout error, logged as one "epoch"
     val_windows: int = 32  # validation segments per evaluation (a fixed, seeded subset)
     rollout_frames: int = 25  # held-out autoregressive rollout length per validation episode
-    holdout_fraction: float = 0.25  # with no val split: the last part of each train episode validates
+    holdout_fraction: float = 0.25  # with no val split: this share of each train episode validates ...
+    holdout_block_frames: int = 12  # ... as interleaved blocks of this many frames (wc.train.data.split_blocks)
     stats_episodes: int = 32  # episodes read to set the input/output scales
     checkpoint_every_steps: int = 100
     autocast_bf16: bool = False  # CUDA only: bf16 autocast of the network, fp32 state accumulation
@@ -62,6 +63,6 @@ class TrainConfig:
         lo, hi = self.edge_ratio
         if not 0 < lo <= 1 <= hi:
             raise ValueError(f"edge_ratio must satisfy 0 < lo <= 1 <= hi, got {self.edge_ratio}")
-        for name in ("eval_every_steps", "val_windows", "rollout_frames", "stats_episodes", "checkpoint_every_steps"):
+        for name in ("eval_every_steps", "val_windows", "holdout_block_frames", "rollout_frames", "stats_episodes", "checkpoint_every_steps"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1")

@@ -58,15 +58,30 @@ def phases_of(store: TrajectoryStore, split: str) -> list[Phase]:
     return [p for eid in store.episodes_where(split=split) for p in episode_phases(store, eid)]
 
 
-def split_tail(phases: list[Phase], fraction: float, window: int) -> tuple[list[Phase], list[Phase]]:
-    """(head, tail) phases: the last `fraction` of each phase held out (tails shorter than `window` dropped)."""
-    head, tail = [], []
+def split_blocks(phases: list[Phase], fraction: float, block_frames: int, window: int
+                 ) -> tuple[list[Phase], list[Phase]]:
+    """(train, held-out) phases: each phase cut into `block_frames` blocks, every k-th block held out (k = 1/fraction).
+
+    Interleaving (rather than holding out each episode's tail) keeps every kind of motion — a fall,
+    an impact, a lift — on both sides when each task has one episode. Block 0 always trains; runs of
+    training blocks merge; held blocks shorter than `window` are dropped, so no frame is on both sides.
+    """
+    every = max(2, int(round(1.0 / fraction)))
+    train, held = [], []
     for p in phases:
-        cut = p.start + int(round((p.stop - p.start) * (1.0 - fraction)))
-        head.append(Phase(p.episode, p.start, cut, p.layout))
-        if p.stop - cut >= window:
-            tail.append(Phase(p.episode, cut, p.stop, p.layout))
-    return head, tail
+        cuts = list(range(p.start, p.stop, block_frames)) + [p.stop]
+        run_start = p.start
+        for i, (a, b) in enumerate(zip(cuts, cuts[1:])):
+            if i % every != every - 1:
+                continue
+            if a - run_start >= window:
+                train.append(Phase(p.episode, run_start, a, p.layout))
+            if b - a >= window:
+                held.append(Phase(p.episode, a, b, p.layout))
+            run_start = b
+        if p.stop - run_start >= window:
+            train.append(Phase(p.episode, run_start, p.stop, p.layout))
+    return train, held
 
 
 def windows_of(phases: list[Phase], window: int) -> list[Window]:

@@ -33,10 +33,14 @@ def load_window(store: TrajectoryStore, window: Window, length: int, device: tor
 def validation_losses(model: WorldContact, store: TrajectoryStore, windows: list[Window], length: int,
                       layout_for: LayoutFor, projector: Projector, dt: float, lambda_x: float, lambda_v: float,
                       device: torch.device) -> dict[str, float]:
-    """Mean segment loss of the model and of zero motion (x stays where it is, v = 0) over `windows`."""
+    """Mean segment loss of the model and of two references over `windows`.
+
+    Zero motion: x stays where it is, v = 0. Constant velocity: x_k = x_0 + k·v_0·dt, v_k = v_0 (what an
+    untrained model, whose head starts near zero change, predicts).
+    """
     was_training = model.training
     model.eval()
-    model_sum = zero_sum = 0.0
+    model_sum = zero_sum = const_sum = 0.0
     for w in windows:
         batch = load_window(store, w, length, device)
         layout = layout_for(w.phase.layout)
@@ -45,9 +49,12 @@ def validation_losses(model: WorldContact, store: TrajectoryStore, windows: list
         model_sum += float(segment_loss(xp, vp, x[:, 1:], v[:, 1:], lambda_x, lambda_v))
         still_x = x[:, :1].expand_as(x[:, 1:])  # zero motion: x stays, v = 0
         zero_sum += float(segment_loss(still_x, torch.zeros_like(still_x), x[:, 1:], v[:, 1:], lambda_x, lambda_v))
+        k = torch.arange(1, length, device=device, dtype=x.dtype)[None, :, None, None]
+        const_x, const_v = x[:, :1] + k * dt * v[:, :1], v[:, :1].expand_as(still_x)
+        const_sum += float(segment_loss(const_x, const_v, x[:, 1:], v[:, 1:], lambda_x, lambda_v))
     model.train(was_training)
     n = max(1, len(windows))
-    return {"val_loss": model_sum / n, "zero_motion_loss": zero_sum / n}
+    return {"val_loss": model_sum / n, "zero_motion_loss": zero_sum / n, "constant_velocity_loss": const_sum / n}
 
 
 @torch.no_grad()

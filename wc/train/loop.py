@@ -31,7 +31,7 @@ from wc.train import distributed
 from wc.train.checkpoint import load_state, save_state, save_weights
 from wc.train.config import TrainConfig
 from wc.train.data import (LayoutBatchSampler, LayoutKey, Phase, Scales, Window, WindowDataset, data_scales,
-                           phases_of, split_tail, windows_of)
+                           phases_of, split_blocks, windows_of)
 from wc.train.evaluation import rollout_error, segment_loss, validation_losses
 from wc.train.schedule import learning_rate
 
@@ -55,8 +55,10 @@ def prepare_data(store: TrajectoryStore, cfg: TrainConfig) -> TrainData:
     val_phases = phases_of(store, "val")
     validation = "val split"
     if not val_phases:
-        train_phases, val_phases = split_tail(train_phases, cfg.holdout_fraction, cfg.window)
-        validation = f"last {cfg.holdout_fraction:.0%} of each train episode (the store has no val split)"
+        train_phases, val_phases = split_blocks(train_phases, cfg.holdout_fraction, cfg.holdout_block_frames,
+                                                cfg.window)
+        validation = (f"every {max(2, round(1 / cfg.holdout_fraction))}th block of {cfg.holdout_block_frames} frames "
+                      f"of each train episode (the store has no val split)")
     train_windows = windows_of(train_phases, cfg.window)
     val_all = windows_of(val_phases, cfg.window)
     if not train_windows or not val_all:
@@ -209,6 +211,7 @@ def _finish(model: WorldContact, work: Path, out_dir: Path, cfg: TrainConfig, da
         "scales": asdict(data.scales), "history": history,
         "best_val_loss": min((h["val_loss"] for h in history if h["stage"] == final), default=float("nan")),
         "zero_motion_val_loss": last.get("zero_motion_loss", float("nan")),
+        "constant_velocity_val_loss": last.get("constant_velocity_loss", float("nan")),
         "rollout_position_mse_m2": last.get("rollout_position_mse_m2", float("nan")),
         "rollout_zero_motion_mse_m2": last.get("rollout_zero_motion_mse_m2", float("nan")),
         "s_per_step_median": step_s, "processes": procs.world_size,

@@ -7,16 +7,17 @@ from typing import Any
 
 from wc.reports import pyplot, save_figure_atomic, write_csv_atomic
 
-COLUMNS = ["step", "stage", "train_loss", "val_loss", "zero_motion_loss", "rollout_position_mse_m2"]
+COLUMNS = ["step", "stage", "train_loss", "val_loss", "zero_motion_loss", "constant_velocity_loss",
+           "rollout_position_mse_m2"]
 
 
 def write_loss_curves(history: list[dict[str, Any]], csv_path: Path) -> None:
     """`csv_path` and its .png sibling from the per-evaluation history of wc.train.loop."""
-    write_csv_atomic(csv_path, COLUMNS, ([h[c] for c in COLUMNS] for h in history))
+    write_csv_atomic(csv_path, COLUMNS, ([h.get(c, float("nan")) for c in COLUMNS] for h in history))
     fig, ax = pyplot().subplots(figsize=(6, 3.5), dpi=120)
     steps = [h["step"] for h in history]
-    for key, style in (("train_loss", "-"), ("val_loss", "-"), ("zero_motion_loss", "--")):
-        ax.plot(steps, [h[key] for h in history], style, label=key.replace("_", " "))
+    for key, style in (("train_loss", "-"), ("val_loss", "-"), ("zero_motion_loss", "--"), ("constant_velocity_loss", ":")):
+        ax.plot(steps, [h.get(key, float("nan")) for h in history], style, label=key.replace("_", " "))
     switch = next((h["step"] for h in history if h["stage"] == "projection"), None)
     if switch is not None:
         ax.axvline(switch, color="grey", lw=0.8, label="projection stage")
