@@ -86,16 +86,18 @@ def robot_boxes(scene: Scene, link_poses: np.ndarray, links: tuple[str, ...] | N
     return centre, q, np.asarray(half, np.float64).reshape(-1, 3)
 
 
-def _min_box_distance(x: np.ndarray, centre: np.ndarray, quat: np.ndarray, half: np.ndarray) -> np.ndarray:
+def _min_box_distance(x: np.ndarray, centre: np.ndarray, quat: np.ndarray, half: np.ndarray,
+                      reach_m: float = 0.0) -> np.ndarray:
     """(T, N) signed distance of points x (T, N, 3) to the nearest of the boxes (T, B, ...); +inf where no box
-    is near. Broad phase: only (frame, box) pairs whose bounding sphere reaches the points' bounding box."""
+    is near. Broad phase: only (frame, box) pairs whose bounding sphere, grown by reach_m, reaches the points'
+    bounding box, so every distance below reach_m is exact."""
     T, N = x.shape[:2]
     out = np.full((T, N), np.inf)
     if len(half) == 0 or N == 0:
         return out
     lo, hi = x.min(axis=1), x.max(axis=1)  # (T, 3)
     gap = np.linalg.norm(np.maximum(np.maximum(lo[:, None] - centre, centre - hi[:, None]), 0.0), axis=-1)
-    pairs = np.argwhere(gap <= np.linalg.norm(half, axis=-1)[None])  # (P, 2) frame, box
+    pairs = np.argwhere(gap <= np.linalg.norm(half, axis=-1)[None] + reach_m)  # (P, 2) frame, box
     step = max(1, CHUNK_ELEMENTS // N)
     for p0 in range(0, len(pairs), step):
         t, b = pairs[p0:p0 + step].T
@@ -223,18 +225,27 @@ def rigid_poses(scene: Scene, ep: Episode) -> list[tuple[str, ObjectMesh, np.nda
     return out
 
 
+def table_and_robot_distance(scene: Scene, x: np.ndarray, link_poses: np.ndarray, reach_m: float = 0.0
+                             ) -> np.ndarray:
+    """(T, N) exact signed distance [m] (negative inside) of points x (T, N, 3) to the nearest of the table box
+    and the robot's link boxes (finger pads included) posed by link_poses (T, L, 7) in scene.link_names order.
+    Robot boxes farther than reach_m from every point of a frame are skipped, so values above reach_m may be
+    a farther box's distance or +inf; the table is always exact."""
+    x = np.asarray(x, np.float64)
+    table_c = np.asarray(scene.table.center_m, np.float64)
+    table_q = np.array([0.0, 0.0, 0.0, 1.0])
+    table = box_signed_distance(x, table_c, table_q, np.asarray(scene.table.half_extents_m, np.float64))
+    centre, quat, half = robot_boxes(scene, link_poses)
+    return np.minimum(table, _min_box_distance(x, centre, quat, half, reach_m))
+
+
 def penetration(scene: Scene, ep: Episode, cfg: ValidateConfig) -> int | None:
     """First frame with a cloth vertex deeper than penetration_tol_m inside the table, a robot link box
     or a rigid object (predicted or held; assumed convex, see convex_planes)."""
     x = ep.x[:, cloth_rows(scene)].astype(np.float64)
     if x.shape[1] == 0:
         return None
-    table_c = np.asarray(scene.table.center_m, np.float64)
-    table_q = np.array([0.0, 0.0, 0.0, 1.0])
-    depth_table = -box_signed_distance(x, table_c, table_q, np.asarray(scene.table.half_extents_m, np.float64))
-    centre, quat, half = robot_boxes(scene, ep.link_poses)
-    depth_robot = -_min_box_distance(x, centre, quat, half)
-    deepest = np.maximum(depth_table, depth_robot).max(axis=1)
+    deepest = -table_and_robot_distance(scene, x, ep.link_poses).min(axis=1)
     for name, mesh, pos, rot in rigid_poses(scene, ep):
         deepest = np.maximum(deepest, convex_depth(x, pos, rot, convex_planes(mesh.vertices, mesh.faces, name)))
     return _first(deepest > cfg.penetration_tol_m)

@@ -1,0 +1,63 @@
+"""The `baselines` params section: which baselines to train, their particle counts, radii and optimisers."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class BaselineParams:
+    """One baseline's scene-scaled numbers (README.md says how each was scaled from the original).
+
+    particles: object particles per scene layout (FPS over mesh vertices); neighbor_radius_m:
+    particle-particle relation radius; tool_radius_m: tool -> particle radius (RoboCraft: the
+    original's extra margin over neighbor_radius_m; 0 where the original has none); max_step_m:
+    per-step displacement bound per axis (0: the original has none).
+    """
+
+    particles: int
+    steps: int
+    lr: float
+    batch: int
+    neighbor_radius_m: float
+    tool_radius_m: float = 0.0
+    max_step_m: float = 0.0
+    tool_points_per_body: int = 16  # FPS points kept per robot link / finger / held object (table: all)
+
+    def validate(self) -> None:
+        for key in ("particles", "steps", "batch", "tool_points_per_body"):
+            if getattr(self, key) < 1:
+                raise ValueError(f"{key} must be >= 1, got {getattr(self, key)}")
+        if not self.lr > 0:
+            raise ValueError(f"lr must be > 0, got {self.lr}")
+        if not self.neighbor_radius_m > 0:
+            raise ValueError(f"neighbor_radius_m must be > 0, got {self.neighbor_radius_m}")
+        if self.tool_radius_m < 0 or self.max_step_m < 0:
+            raise ValueError("tool_radius_m and max_step_m must be >= 0")
+
+
+@dataclass(frozen=True)
+class BaselinesConfig:
+    """Baselines trained by stages/train_baselines.py, on the split and holdout rule of the `train` section.
+
+    `names` are registry names (wc.baselines.BASELINES); each needs its entry in `models`.
+    """
+
+    names: tuple[str, ...]
+    models: dict[str, BaselineParams]
+    eval_every_steps: int = 25  # validation particle loss (RoboCook's plateau schedule steps on it)
+    val_windows: int = 8
+    rollout_frames: int = 25  # held-out vertex rollout per validation phase, at the end ...
+    rollout_phases: int = 8  # ... over this many validation phases (spread evenly over the list)
+    device: str = "cpu"
+    seed: int = 0
+
+    def validate(self) -> None:
+        if not self.names:
+            raise ValueError("names must list at least one baseline")
+        for name in self.names:
+            if name not in self.models:
+                raise ValueError(f"models.{name} missing (names lists it)")
+        for key in ("eval_every_steps", "val_windows", "rollout_frames", "rollout_phases"):
+            if getattr(self, key) < 1:
+                raise ValueError(f"{key} must be >= 1, got {getattr(self, key)}")

@@ -1,0 +1,137 @@
+"""Training one baseline on a trajectory store: same split and holdout rule as WorldContact (wc.train.loop.prepare_data).
+
+Writes `<out>/model.safetensors` + `model.json` under `<out>.partial/`, renamed into place when done.
+The report holds the loss history, s/step and the held-out rollout position MSE of every mesh vertex
+(against the zero-motion reference), measured through the public `rollout`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import shutil
+import statistics
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from wc.baselines import build_baseline, save_baseline
+from wc.baselines.base import ParticleDynamics
+from wc.baselines.config import BaselinesConfig
+from wc.data.store import TrajectoryStore
+from wc.model.layout import SceneLayout, scene_layout
+from wc.train.config import TrainConfig
+from wc.train.data import LayoutBatchSampler, LayoutKey, Phase, Window, WindowDataset, read_phase_window
+from wc.train.evaluation import load_window
+from wc.train.loop import prepare_data
+
+TAG_SCALE = 1.0  # the baselines do not read the layout's tag attribute
+
+
+def position_statistics(store: TrajectoryStore, phases: list[Phase], max_phases: int = 32) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-axis mean and std (m) of object vertex positions over (up to `max_phases`) training phases."""
+    picked = phases[:: max(1, len(phases) // max_phases)][:max_phases]
+    x = np.concatenate([read_phase_window(store, p, p.start, p.stop - p.start)["x"].reshape(-1, 3) for p in picked])
+    return torch.tensor(x.mean(0), dtype=torch.float32), torch.tensor(np.maximum(x.std(0), 1e-3), dtype=torch.float32)
+
+
+@torch.no_grad()
+def validation_loss(model: ParticleDynamics, store: TrajectoryStore, windows: list[Window], length: int,
+                    layout_for, device: torch.device) -> float:  # noqa: ANN001 - layout_for(key) -> SceneLayout
+    """Mean training loss of the model over `windows` (one at a time)."""
+    total = 0.0
+    for w in windows:
+        batch = load_window(store, w, length, device)
+        total += float(model.window_loss(layout_for(w.phase.layout), batch["x"], batch["poses"]))
+    return total / max(1, len(windows))
+
+
+@torch.no_grad()
+def rollout_error(model: ParticleDynamics, store: TrajectoryStore, phases: list[Phase], frames: int, layout_for,
+                  device: torch.device) -> dict[str, float]:  # noqa: ANN001
+    """Vertex position MSE (m², mean over vertices and frames of ‖x̂ − x‖²) of rollouts from each phase's first frame,
+    and of zero motion; history before the first frame padded as in `rollout`."""
+    errors, zero = [], []
+    for p in phases:
+        length = min(frames + 1, p.stop - p.start)
+        if length < 2:
+            continue
+        batch = load_window(store, Window(p, p.start), length, device)
+        x = batch["x"]
+        xp, _ = model.rollout(layout_for(p.layout), x[:, 0], batch["v"][:, 0], batch["poses"], store.dt)
+        errors.append(float((xp - x[:, 1:]).square().sum(-1).mean()))
+        zero.append(float((x[:, :1] - x[:, 1:]).square().sum(-1).mean()))
+    if not errors:
+        return {"rollout_position_mse_m2": float("nan"), "rollout_zero_motion_mse_m2": float("nan")}
+    return {"rollout_position_mse_m2": float(np.mean(errors)), "rollout_zero_motion_mse_m2": float(np.mean(zero))}
+
+
+def train_baseline(name: str, store_path: str | Path, out_dir: str | Path, cfg: BaselinesConfig,
+                   train_cfg: TrainConfig, meta: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Train baseline `name` with its params in `cfg.models`; write `out_dir`; return the report dict."""
+    params = cfg.models[name]
+    device = torch.device(cfg.device)
+    torch.manual_seed(cfg.seed)
+    store = TrajectoryStore(store_path)
+    model = build_baseline(name, params)
+    window = model.history + model.sequence
+    data = prepare_data(store, dataclasses.replace(train_cfg, window=window, val_windows=cfg.val_windows, seed=cfg.seed))
+    train_phases = list(dict.fromkeys(w.phase for w in data.train_windows))
+    model.set_statistics(*position_statistics(store, train_phases), data.scales.delta_x_m)
+    model.to(device).train()
+    cache: dict[LayoutKey, SceneLayout] = {}
+
+    def layout_for(key: LayoutKey) -> SceneLayout:
+        if key not in cache:
+            cache[key] = scene_layout(store, list(key[0]), list(key[1]), TAG_SCALE).to(device)
+        return cache[key]
+
+    optimizer = torch.optim.Adam(model.parameters(), lr=params.lr)
+    plateau = torch.optim.lr_scheduler.ReduceLROnPlateau(optimizer, factor=0.8, patience=3) if model.plateau else None
+    dataset = WindowDataset(store_path, data.train_windows, window)
+    loader = iter(torch.utils.data.DataLoader(dataset, batch_sampler=LayoutBatchSampler(
+        data.train_windows, params.batch, cfg.seed), num_workers=0))
+    history, recent, step_times = [], [], []
+    for step in tqdm(range(1, params.steps + 1), desc=f"train {name}"):
+        batch = next(loader)
+        layout = layout_for(dataset.layout_keys[int(batch["layout"][0])])
+        t0 = time.perf_counter()
+        loss = model.window_loss(layout, batch["x"].to(device), batch["poses"].to(device))
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+        recent.append(float(loss.detach()))
+        step_times.append(time.perf_counter() - t0)
+        if not np.isfinite(recent[-1]):
+            raise FloatingPointError(f"train {name}: loss became {recent[-1]} at step {step}")
+        if step % cfg.eval_every_steps == 0 or step == params.steps:
+            model.eval()
+            val = validation_loss(model, store, data.val_windows, window, layout_for, device)
+            model.train()
+            if plateau is not None:
+                plateau.step(val)
+            history.append({"step": step, "train_loss": float(np.mean(recent)), "val_loss": val,
+                            "lr": optimizer.param_groups[0]["lr"]})
+            recent = []
+    model.eval()
+    picked = data.val_phases[:: max(1, len(data.val_phases) // cfg.rollout_phases)][:cfg.rollout_phases]
+    errors = rollout_error(model, store, picked, cfg.rollout_frames, layout_for, device)
+    out_dir, work = Path(out_dir), Path(f"{out_dir}.partial")
+    shutil.rmtree(work, ignore_errors=True)
+    timed = step_times[min(len(step_times) - 1, 3):]  # skip warm-up steps
+    report = {"name": name, "params": dataclasses.asdict(params), "window": window, "history": history,
+              "final_train_loss": history[-1]["train_loss"], "final_val_loss": history[-1]["val_loss"],
+              "s_per_step_median": statistics.median(timed), "train_windows": len(data.train_windows),
+              "val_windows": len(data.val_windows), "val_phases": len(data.val_phases), "rollout_phases": len(picked), "validation": data.validation,
+              "particles_per_layout": {"+".join(k[0]): s.num_particles for k, s in
+                                       ((k, model.scene(layout_for(k))) for k in dataset.layout_keys)},
+              "train_s": float(sum(step_times)), **errors}
+    save_baseline(model.cpu(), work, {**(meta or {}), "dt": store.dt, "steps": params.steps,
+                                      "final_val_loss": report["final_val_loss"], **errors})
+    if out_dir.exists():
+        shutil.rmtree(out_dir)
+    work.rename(out_dir)
+    return report

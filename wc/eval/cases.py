@@ -1,0 +1,128 @@
+"""Evaluation cases: which stored phases are rolled out, and everything a rollout and its scoring need.
+
+A case is one phase (wc.train.data.episode_phases: a hand-off episode has two) read from its first
+frame: the recorded x, v and prescribed body poses, the model's scene layout, and the collision
+scene (table, robot boxes, rigid and held objects) rebuilt from params `scene` for that phase.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from wc.data.store import TrajectoryStore
+from wc.model.layout import SceneLayout, scene_layout
+from wc.scene.config import SceneConfig
+from wc.scene.scene import Scene, build_scene
+from wc.train.config import TrainConfig
+from wc.train.data import LayoutKey, Phase, episode_phases, phases_of, read_phase_window
+from wc.train.loop import prepare_data
+from wc.validate.predicates import cloth_rows
+from wc.validate.stage import EpisodeScenes, episode_held
+
+
+@dataclass(frozen=True)
+class Case:
+    """The first `frames` frames of one phase: x, v (T, N, 3), poses (T, P, 7) as the model takes them,
+    link_poses (T, L, 7) in scene.link_names order, cloth_area (N_cloth,) m^2 of the scene's cloth rows."""
+
+    phase: Phase
+    task: str
+    layout: SceneLayout
+    scene: Scene
+    x: np.ndarray
+    v: np.ndarray
+    poses: np.ndarray
+    link_poses: np.ndarray
+    cloth_area: np.ndarray
+
+    @property
+    def steps(self) -> int:
+        return len(self.x) - 1
+
+    def inputs(self, device: torch.device) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """x0, v0 (1, N, 3) and poses (1, T, P, 7) on `device`."""
+        return (torch.from_numpy(self.x[:1].copy()).to(device), torch.from_numpy(self.v[:1].copy()).to(device),
+                torch.from_numpy(self.poses[None].copy()).to(device))
+
+
+def held_out_phases(store: TrajectoryStore, train_cfg: TrainConfig) -> tuple[list[Phase], str]:
+    """(phases, where they come from): the test split; without one, the validation data training held out
+    (wc.train.loop.prepare_data: the val split, else its held-out part of the train episodes)."""
+    test = phases_of(store, "test")
+    if test:
+        return test, "test split"
+    data = prepare_data(store, train_cfg)
+    return data.val_phases, f"no test split; training's validation data: {data.validation}"
+
+
+def long_phases(store: TrajectoryStore, per_task: int) -> tuple[list[Phase], str]:
+    """(phases, where they come from): per task the `per_task` longest phases of test episodes, or of every
+    episode when the store has no test split; ties go to the lower episode id."""
+    episodes = store.episodes_where(split="test")
+    source = "test split"
+    if not episodes:
+        episodes, source = store.episode_ids, "every episode (the store has no test split)"
+    by_task: dict[str, list[Phase]] = {}
+    for eid in episodes:
+        by_task.setdefault(store.episode_attrs(eid)["task"], []).extend(episode_phases(store, eid))
+    picked = [p for task in sorted(by_task)
+              for p in sorted(by_task[task], key=lambda p: -(p.stop - p.start))[:per_task]]
+    return picked, source
+
+
+class PhaseScenes(EpisodeScenes):
+    """Collision scenes per phase layout: the phase's predicted objects, plus the held objects whose
+    `held_<name>` body the phase prescribes (before a hand-off's release the ball is held, after it predicted)."""
+
+    def phase_scene(self, phase: Phase) -> Scene:
+        where = f"{self.store.path}: episode {phase.episode}"
+        held = episode_held(self.store.episode_attrs(phase.episode), where)
+        held_key = tuple((name, link, pose) for name, (link, pose) in sorted(held.items())
+                         if f"held_{name}" in phase.layout[1])
+        key = (phase.layout[0], held_key)
+        if key not in self._scenes:
+            scene = build_scene(self.scene_cfg, phase.layout[0], held={n: (link, pose) for n, link, pose in held_key})
+            self._check_meshes(scene)
+            self._scenes[key] = scene
+        return self._scenes[key]
+
+
+class CaseReader:
+    """Builds cases from a store; layouts and scenes are made once per phase layout."""
+
+    def __init__(self, store: TrajectoryStore, scene_cfg: SceneConfig, tag_scale: float, device: torch.device) -> None:
+        self.store = store
+        self.tag_scale = tag_scale
+        self.device = device
+        self.scenes = PhaseScenes(scene_cfg, store)
+        self._layouts: dict[LayoutKey, SceneLayout] = {}
+
+    def layout(self, key: LayoutKey) -> SceneLayout:
+        if key not in self._layouts:
+            self._layouts[key] = scene_layout(self.store, list(key[0]), list(key[1]), self.tag_scale).to(self.device)
+        return self._layouts[key]
+
+    def case(self, phase: Phase, frames: int) -> Case:
+        """The first min(frames, phase length) frames of the phase."""
+        length = min(frames, phase.stop - phase.start)
+        if length < 2:
+            raise ValueError(f"{self.store.path}: phase [{phase.start}, {phase.stop}) of {phase.episode} is too short "
+                             "to roll out")
+        a = read_phase_window(self.store, phase, phase.start, length)
+        scene = self.scenes.phase_scene(phase)
+        links = list(phase.layout[1])
+        missing = [n for n in scene.link_names if n not in links]
+        if missing:
+            raise ValueError(f"{self.store.path}: episode {phase.episode} has no link_poses columns for {missing}; "
+                             "penetration needs every robot body and held object")
+        link_poses = a["poses"][:, [links.index(n) for n in scene.link_names]]
+        cloth = cloth_rows(scene)
+        areas = np.concatenate([self.store.objects[o].vertex_area for o in phase.layout[0]])
+        if areas.shape[0] != a["x"].shape[1]:
+            raise ValueError(f"{self.store.path}: episode {phase.episode}: {a['x'].shape[1]} rows of x, "
+                             f"{areas.shape[0]} vertex areas of {phase.layout[0]}")
+        return Case(phase, str(self.store.episode_attrs(phase.episode)["task"]), self.layout(phase.layout), scene,
+                    a["x"], a["v"], a["poses"], link_poses, areas[cloth].astype(np.float64))

@@ -1,0 +1,62 @@
+"""Stability figure: per-step median (and interquartile band) over long rollouts, one line per method."""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from wc.eval.stability import StabilityCurve
+from wc.reports import pyplot, save_figure_atomic
+
+PANELS = (("position_mse_m2", "position MSE [m²]", True),
+          ("penetration_rate_pct", "penetrating cloth area [%]", False),
+          ("max_edge_strain", "max edge strain |l/l₀ − 1|", True))
+
+
+def _stack(curves: Sequence[StabilityCurve], field: str) -> np.ndarray:
+    """(rollouts, max steps) with NaN padding past each rollout's end."""
+    out = np.full((len(curves), max(c.steps for c in curves)), np.nan)
+    for i, c in enumerate(curves):
+        out[i, : c.steps] = getattr(c, field)
+    return out
+
+
+def plot_stability(curves: Sequence[StabilityCurve], path: str | Path, dt: float,
+                   strain_bound: float | None = None, penetration_bound_pct: float | None = None) -> Path:
+    """Write the three-panel figure (error, penetration, strain against rollout time) to `path` (PNG)."""
+    plt = pyplot()
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.2), constrained_layout=True)
+    methods = list(dict.fromkeys(c.method for c in curves))
+    for i, method in enumerate(methods):
+        mine = [c for c in curves if c.method == method]
+        for ax, (field, label, log) in zip(axes, PANELS):
+            values = _stack(mine, field)
+            if log:
+                values = np.where(values > 0, values, np.nan)
+            if np.isnan(values).all():
+                continue
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN steps after every rollout diverged
+                lo, mid, hi = np.nanpercentile(values, [25, 50, 75], axis=0)
+            t = np.arange(1, values.shape[1] + 1) * dt
+            ax.plot(t, mid, color=f"C{i}", label=method)  # one colour per method in every panel
+            ax.fill_between(t, lo, hi, color=f"C{i}", alpha=0.15, linewidth=0)
+    for ax, (field, label, log) in zip(axes, PANELS):
+        ax.set_xlabel("rollout time [s]")
+        ax.set_ylabel(label)
+        if log:
+            ax.set_yscale("log")
+        ax.grid(alpha=0.3)
+    if strain_bound is not None:
+        axes[2].axhline(strain_bound, color="k", linestyle="--", linewidth=0.8)
+        axes[2].set_title(f"divergence above {strain_bound:g} (dashed)", fontsize=9)
+    if penetration_bound_pct is not None:  # usually far above the curves: named, not drawn
+        axes[1].set_title(f"divergence above {penetration_bound_pct:g} %", fontsize=9)
+    handles = [plt.Line2D([], [], color=f"C{i}", label=m) for i, m in enumerate(methods)]
+    axes[1].legend(handles=handles, fontsize=8)
+    fig.suptitle(f"Long rollouts: per-step median over the {len(curves) // max(1, len(methods))} rollouts per "
+                 "method that reach the step (band: 25-75 %)")
+    return save_figure_atomic(fig, path)

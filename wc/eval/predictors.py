@@ -1,0 +1,123 @@
+"""Everything `evaluate` compares, behind one tiny interface.
+
+A `Predictor` advances the object state of one scene layout under recorded prescribed inputs:
+
+    x, v = predictor.rollout(layout, x0, v0, poses, dt)
+    layout: wc.model.layout.SceneLayout (objects, rest topology, prescribed sample sets)
+    x0, v0: (B, N, 3) torch tensors, m and m/s;  poses: (B, T, P, 7) body poses of frames 0..T-1
+    returns x, v: (B, T-1, N, 3), frames 1..T-1 (non-finite values are allowed: a diverged rollout)
+
+The baselines (wc.baselines.load_baseline(path)) follow the same shape. Implemented here: zero motion,
+constant velocity and WorldContact from a checkpoint directory.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Protocol
+
+import torch
+
+from wc.eval.config import MethodSpec
+from wc.model.layout import SceneLayout
+from wc.model.rollout import rollout
+from wc.model.worldcontact import WorldContact
+from wc.train.checkpoint import load_model
+from wc.train.config import TrainConfig
+
+CHECKPOINT = "model.safetensors"
+
+
+class Predictor(Protocol):
+    def rollout(self, layout: SceneLayout, x0: torch.Tensor, v0: torch.Tensor, poses: torch.Tensor,
+                dt: float) -> tuple[torch.Tensor, torch.Tensor]:
+        """Predicted x, v (B, T-1, N, 3) for frames 1..T-1 from x0, v0 (B, N, 3) under poses (B, T, P, 7)."""
+        ...
+
+
+def _steps(x0: torch.Tensor, poses: torch.Tensor) -> int:
+    if x0.ndim != 3 or poses.ndim != 4 or poses.shape[0] != x0.shape[0] or poses.shape[1] < 2:
+        raise ValueError(f"x0 must be (B, N, 3) and poses (B, T>=2, P, 7), got {tuple(x0.shape)} and "
+                         f"{tuple(poses.shape)}")
+    return poses.shape[1] - 1
+
+
+class ZeroMotion:
+    """Reference: every vertex stays where it is, v = 0."""
+
+    def rollout(self, layout: SceneLayout, x0: torch.Tensor, v0: torch.Tensor, poses: torch.Tensor,
+                dt: float) -> tuple[torch.Tensor, torch.Tensor]:
+        steps = _steps(x0, poses)
+        x = x0[:, None].expand(-1, steps, -1, -1)
+        return x.clone(), torch.zeros_like(x)
+
+
+class ConstantVelocity:
+    """Reference: every vertex keeps its initial velocity, x_k = x0 + k·v0·dt, v_k = v0."""
+
+    def rollout(self, layout: SceneLayout, x0: torch.Tensor, v0: torch.Tensor, poses: torch.Tensor,
+                dt: float) -> tuple[torch.Tensor, torch.Tensor]:
+        steps = _steps(x0, poses)
+        k = torch.arange(1, steps + 1, dtype=x0.dtype, device=x0.device)[None, :, None, None]
+        return x0[:, None] + k * dt * v0[:, None], v0[:, None].expand(-1, steps, -1, -1).clone()
+
+
+class WorldContactPredictor:
+    """WorldContact (eval mode), with its topology projection when the checkpoint was trained with it.
+
+    Steps one frame at a time so that a rollout that turns non-finite stops there (the model refuses
+    non-finite inputs) and the remaining frames are NaN.
+    """
+
+    def __init__(self, model: WorldContact, projection: bool, train_cfg: TrainConfig) -> None:
+        self.model = model.eval()
+        self.projection = projection
+        self.train_cfg = train_cfg
+
+    @classmethod
+    def from_dir(cls, path: str | Path, train_cfg: TrainConfig, device: torch.device) -> WorldContactPredictor:
+        """Load <path>/model.safetensors + model.json; the json's "projection" says whether P is applied."""
+        model, config = load_model(Path(path) / CHECKPOINT, device)
+        return cls(model, bool(config.get("projection", False)), train_cfg)
+
+    @property
+    def tag_scale(self) -> float:
+        return float(self.model.config.tag_scale)
+
+    def _projector(self, layout: SceneLayout):  # noqa: ANN202 - TopologyProjection | None
+        if not self.projection:
+            return None
+        c = self.train_cfg
+        return self.model.projection(layout, c.smoothing_iterations, c.smoothing_weight, c.constraint_iterations,
+                                     c.edge_ratio)
+
+    @torch.no_grad()
+    def rollout(self, layout: SceneLayout, x0: torch.Tensor, v0: torch.Tensor, poses: torch.Tensor,
+                dt: float) -> tuple[torch.Tensor, torch.Tensor]:
+        steps = _steps(x0, poses)
+        projection = self._projector(layout)
+        xs = torch.full((x0.shape[0], steps, *x0.shape[1:]), float("nan"), dtype=x0.dtype, device=x0.device)
+        vs = xs.clone()
+        x, v = x0, v0
+        for t in range(steps):
+            x, v = (a[:, 0] for a in rollout(self.model, layout, x, v, poses[:, t:t + 2], dt, projection))
+            xs[:, t], vs[:, t] = x, v
+            if not (torch.isfinite(x).all() and torch.isfinite(v).all()):
+                break
+        return xs, vs
+
+
+def load_predictor(spec: MethodSpec, train_cfg: TrainConfig, device: torch.device) -> Predictor:
+    """The predictor a params method entry names. FileNotFoundError when its checkpoint directory is absent
+    (the stage skips such methods with a note); ImportError when no baseline package is installed."""
+    if spec.kind == "zero_motion":
+        return ZeroMotion()
+    if spec.kind == "constant_velocity":
+        return ConstantVelocity()
+    if not Path(spec.path).is_dir():
+        raise FileNotFoundError(f"checkpoint directory {spec.path} not found")
+    if spec.kind == "worldcontact":
+        return WorldContactPredictor.from_dir(spec.path, train_cfg, device)
+    from wc.baselines import load_baseline  # noqa: PLC0415 - written separately; optional until it lands
+
+    return load_baseline(spec.path, device)
