@@ -96,7 +96,7 @@ def test_wrist_view_follows_the_right_arm(params: dict, store: Path) -> None:
     x = src.read_episode("ep_000000", ("x",))["x"][:1].repeat(3, axis=0)
     scene = build_scene(scene_cfg, ["bag"])
     actions = np.repeat(scene.home_action()[None], 3, axis=0)
-    actions[1, 0] += 0.4  # left shoulder yaw: the right wrist camera stays put
+    actions[1, 5] += 0.4  # left wrist roll: the right wrist camera stays put (the left arm barely changes shape)
     actions[2, 7] += 0.4  # right shoulder yaw
     links = src.episode_links("ep_000000")
     poses = scene.link_poses(actions)[:, [list(scene.link_names).index(n) for n in links]]

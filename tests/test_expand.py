@@ -1,0 +1,216 @@
+"""Stage `expand` on a synthetic store with a tiny untrained WorldContact: rigid initial-state transforms,
+batched rollouts that survive a diverged member, schema-valid output, per-check rejection counts,
+determinism and clear errors."""
+
+from __future__ import annotations
+
+import copy
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import torch
+import yaml
+
+from stages.expand import main
+from tests.synthetic_store import write_synthetic_store
+from wc.config import ParamsError, load_section, read_params
+from wc.data.store import TrajectoryStore, copy_store
+from wc.expand import ExpandConfig, NoSourceEpisodesError, check_on_table, expand, finite_rollout, planar_transform
+from wc.model.config import ModelConfig
+from wc.model.projection import edges_from_faces
+from wc.model.worldcontact import WorldContact
+from wc.scene.config import SceneConfig
+from wc.scene.scene import build_scene
+from wc.tasks.base import InfeasibleEpisode
+from wc.train.checkpoint import save_weights
+from wc.validate import PREDICATES
+
+TASK = "lift_handle"
+# Tolerances so loose that a tiny untrained model's rollouts pass every check (the acceptance path);
+# the rejection test tightens one of them.
+LOOSE = dict(max_speed_m_s=1e3, max_edge_strain=1e3, penetration_tol_m=10.0, self_intersection_every=10_000,
+             release_opening_m=10.0, adhesion_radius_m=0.01, adhesion_window_s=0.4, adhesion_rise_m=0.03,
+             workspace_min_m=[-10.0, -10.0, -10.0], workspace_max_m=[10.0, 10.0, 10.0],
+             min_visible_fraction=1e-9, view_camera="top", val_per_task=0, test_per_task=0, split_seed=0)
+
+
+@pytest.fixture(scope="module")
+def params() -> dict[str, Any]:
+    p = read_params("params.yaml")
+    p["validate"] = copy.deepcopy(LOOSE)
+    p["tasks"][TASK].update(speed_range_m_s=[0.4, 0.5], amplitude_range_m=[0.02, 0.03], hold_s=0.0)  # ~20 frames
+    p["tasks"]["common"].update(close_s=0.08)
+    p["expand"].update(target_trajectories=4, max_attempts=6, batch_size=2, task_check=False, device="cpu", seed=3)
+    return p
+
+
+@pytest.fixture(scope="module")
+def store_path(tmp_path_factory, params) -> Path:
+    """Two lift_handle source episodes (the synthetic bag at rest, robot at home) and one of another task."""
+    d = tmp_path_factory.mktemp("store")
+    raw = write_synthetic_store(d / "raw.zarr", params, [("fall", "train"), ("carry", "train"), ("fall", "test")],
+                                frames=3)
+    src = TrajectoryStore(raw)
+    relabel = {"task": TASK, "cell": 1}
+    return copy_store(src, d / "s.zarr", src.episode_ids, {"ep_000000": relabel, "ep_000002": relabel}).path
+
+
+@pytest.fixture(scope="module")
+def model_dir(tmp_path_factory, params) -> Path:
+    torch.manual_seed(0)
+    cfg = load_section({**params, "model": {**params["model"], "encoder_levels": 1, "decoder_layers": 1}},
+                       "model", ModelConfig)
+    model = WorldContact(cfg, velocity_m_s=0.3, delta_x_m=0.002, delta_v_m_s=0.05).eval()
+    torch.nn.init.normal_(model.head.mlp[-1].weight, std=0.1)  # visible predictions
+    d = tmp_path_factory.mktemp("models") / "worldcontact"
+    d.mkdir()
+    save_weights(model, d / "model.safetensors", {"projection": True, "dt": 0.04})
+    return d
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory, params, store_path, model_dir) -> tuple[Path, dict[str, Any]]:
+    d = tmp_path_factory.mktemp("out")
+    return d, expand(params, model_dir, store_path, d / "expanded.zarr", d / "expand.json")
+
+
+def _edge_lengths(x: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    e = edges_from_faces(torch.from_numpy(faces.astype(np.int64))).numpy()
+    return np.linalg.norm(x[..., e[:, 0], :] - x[..., e[:, 1], :], axis=-1)
+
+
+def test_planar_transform_is_rigid_and_keeps_the_bag_on_the_table(params):
+    scene = build_scene(load_section(params, "scene", SceneConfig), ["bag"])
+    bag = scene.objects["bag"]
+    x = bag.vertices + np.float32([0.01, -0.02, 0.004])
+    y = planar_transform(x, 35.0, (0.03, -0.01))
+    assert _edge_lengths(y, bag.faces) == pytest.approx(_edge_lengths(x, bag.faces), abs=1e-6)
+    assert np.array_equal(y[:, 2], x[:, 2]) and y[:, 2].min() >= scene.table.top_z
+    assert y[:, :2].mean(0) == pytest.approx(x[:, :2].mean(0) + [0.03, -0.01], abs=1e-6)
+    rel_x, rel_y = x[:, :2] - x[:, :2].mean(0), y[:, :2] - y[:, :2].mean(0)
+    angle = np.arctan2(rel_y[:, 1], rel_y[:, 0]) - np.arctan2(rel_x[:, 1], rel_x[:, 0])
+    far = np.linalg.norm(rel_x, axis=1) > 0.01
+    assert np.rad2deg(np.angle(np.exp(1j * angle[far]))) == pytest.approx(35.0, abs=1e-3)
+    check_on_table(y, scene.table)
+    with pytest.raises(InfeasibleEpisode, match="sampled region"):
+        check_on_table(planar_transform(x, 0.0, (0.3, 0.0)), scene.table)
+
+
+class _StubPredictor:
+    """x += 1 per step, stopping the whole batch at the first non-finite member (as WorldContact does);
+    member 0 turns NaN at its 3rd step."""
+
+    def rollout(self, layout, x0, v0, poses, dt):
+        steps = poses.shape[1] - 1
+        xs = torch.full((x0.shape[0], steps, *x0.shape[1:]), float("nan"))
+        x = x0.clone()
+        for t in range(steps):
+            x = x + 1.0
+            if self.poison and t == 2:
+                x[0] = float("nan")
+            xs[:, t] = x
+            if not torch.isfinite(x).all():
+                break
+        self.poison = False
+        return xs, torch.zeros_like(xs).masked_fill(xs.isnan(), float("nan"))
+
+    poison = True
+
+
+def test_a_diverged_member_does_not_cut_the_batch_short():
+    x0 = np.zeros((3, 4, 3), np.float32)
+    x, v = finite_rollout(_StubPredictor(), None, x0, x0, np.zeros((3, 8, 2, 7), np.float32), 0.04, torch.device("cpu"))
+    assert x.shape == (3, 8, 4, 3)
+    assert np.isfinite(x[0, :3]).all() and np.isnan(x[0, 3:]).all()  # diverged at frame 3, NaN from there
+    for b in (1, 2):
+        assert x[b, :, 0, 0] == pytest.approx(np.arange(8))  # finished, as if never batched with member 0
+
+
+def test_stage_writes_checked_worldcontact_episodes(run, store_path, params):
+    out, r = run
+    assert json.loads((out / "expand.json").read_text()) == json.loads(json.dumps(r))
+    assert r["source_episodes"] == 2 and r["wanted_generated"] == 2
+    assert r["accepted"] == 2 and r["target_reached"] and r["expanded_total"] == 4
+    assert r["generated"] == r["accepted"] + sum(r["rejections"].values())
+    assert set(PREDICATES) <= set(r["rejections"]) and r["trajectories_per_min"] > 0 and r["device"] == "cpu"
+    src, dst = TrajectoryStore(store_path), TrajectoryStore(out / "expanded.zarr")
+    assert dst.attrs["created_by"] == "stages.expand" and dst.object_names == src.object_names
+    assert set(dst.prescribed) == set(src.prescribed)
+    assert len(dst.episode_ids) == r["accepted"]
+    scene = build_scene(load_section(params, "scene", SceneConfig), ["bag"])
+    faces = src.objects["bag"].faces
+    for eid in dst.episode_ids:
+        a = dst.episode_attrs(eid)
+        assert (a["source"], a["task"], a["split"], a["accepted"], a["first_failure"]) == \
+            ("worldcontact", TASK, "train", True, None)
+        assert a["parent"] in ("ep_000000", "ep_000002") and a["objects"] == ["bag"]
+        e = dst.read_episode(eid)
+        parent = src.read_window(a["parent"], 0, 1, ("x",))["x"][0]
+        assert _edge_lengths(e["x"][0], faces) == pytest.approx(_edge_lengths(parent, faces), abs=1e-6)  # rigid
+        assert np.array_equal(e["x"][0, :, 2], parent[:, 2]) and not e["v"][0].any()
+        assert not np.allclose(e["x"][-1], e["x"][0])  # the model moved it
+        assert np.allclose(e["link_poses"], scene.link_poses(e["action"]), atol=1e-6)
+        assert e["action"][:, 13].max() > e["action"][:, 13].min()  # the right gripper opens and closes
+        assert e["env_poses"].shape == (len(e["x"]), 1, 7)
+
+
+def test_same_seed_same_output(run, tmp_path, params, store_path, model_dir):
+    out, first = run
+    again = expand(params, model_dir, store_path, tmp_path / "again.zarr", tmp_path / "again.json")
+    a, b = TrajectoryStore(out / "expanded.zarr"), TrajectoryStore(tmp_path / "again.zarr")
+    assert a.episode_ids == b.episode_ids
+    for eid in a.episode_ids:
+        assert a.episode_attrs(eid) == b.episode_attrs(eid)
+        for k, arr in a.read_episode(eid).items():
+            assert np.array_equal(arr, b.read_episode(eid)[k]), k
+    timing = ("wall_s", "rollout_s", "trajectories_per_min", "accepted_per_min", "model_frames_per_s", "out",
+              "environment")
+    assert {k: v for k, v in first.items() if k not in timing} == {k: v for k, v in again.items() if k not in timing}
+
+
+def test_rejected_episodes_are_counted_per_check_and_not_written(tmp_path, params, store_path, model_dir):
+    p = copy.deepcopy(params)
+    p["validate"]["max_speed_m_s"] = 1e-4  # every moving rollout blows up
+    p["expand"].update(max_attempts=3)
+    r = expand(p, model_dir, store_path, tmp_path / "e.zarr", tmp_path / "e.json")
+    assert r["accepted"] == 0 and r["generated"] == 3 - r["infeasible_plans"] > 0
+    assert r["rejections"]["blow_up"] == r["generated"] and not r["target_reached"]
+    assert {e["reason"] for e in r["rejected_episodes"]} == {"blow_up"}
+    assert TrajectoryStore(tmp_path / "e.zarr").episode_ids == []
+    p["validate"]["max_speed_m_s"] = 1e3
+    p["expand"].update(task_check=True, max_attempts=2)  # the tiny model lifts nothing
+    r = expand(p, model_dir, store_path, tmp_path / "t.zarr", tmp_path / "t.json")
+    assert r["rejections"]["not_lifted"] == r["generated"] == 2 and r["accepted"] == 0
+
+
+def test_clear_errors(tmp_path, params, store_path, model_dir):
+    with pytest.raises(FileNotFoundError, match="validate stage"):
+        expand(params, model_dir, tmp_path / "none.zarr", tmp_path / "o.zarr", tmp_path / "r.json")
+    with pytest.raises(FileNotFoundError, match="model.safetensors"):
+        expand(params, tmp_path / "no_model", store_path, tmp_path / "o.zarr", tmp_path / "r.json")
+    other = write_synthetic_store(tmp_path / "other.zarr", params, [("carry", "train")], frames=3)
+    with pytest.raises(NoSourceEpisodesError, match="lift_handle.*carry"):
+        expand(params, model_dir, other, tmp_path / "o.zarr", tmp_path / "r.json")
+    with pytest.raises(ValueError, match="overwrite"):
+        expand(params, model_dir, store_path, store_path, tmp_path / "r.json")
+    assert not (tmp_path / "o.zarr").exists() and not (tmp_path / "r.json").exists()
+    p = copy.deepcopy(params)
+    p["expand"]["batch_size"] = 0
+    with pytest.raises(ParamsError, match="expand: batch_size"):
+        load_section(p, "expand", ExpandConfig)
+    p["expand"] = {**params["expand"], "yaw_deg": 3}
+    with pytest.raises(ParamsError, match="expand.yaw_deg"):
+        load_section(p, "expand", ExpandConfig)
+
+
+def test_command_line(tmp_path, params, store_path, model_dir, capsys):
+    path = tmp_path / "params.yaml"
+    path.write_text(yaml.safe_dump({k: v for k, v in params.items() if k != "_source"}))
+    main(["--params", str(path), "--set", "expand.max_attempts=1", "--set", "expand.target_trajectories=3",
+          "--model", str(model_dir), "--store", str(store_path), "--out", str(tmp_path / "c.zarr"),
+          "--report", str(tmp_path / "c.json")])
+    assert "expand lift_handle: 1/1 generated episodes accepted" in capsys.readouterr().out
+    assert json.loads((tmp_path / "c.json").read_text())["accepted"] == 1

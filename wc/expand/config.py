@@ -1,0 +1,36 @@
+"""The `expand` params section: which task to expand, how many trajectories, how to draw new initial states."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+Range = tuple[float, float]
+
+
+@dataclass(frozen=True)
+class ExpandConfig:
+    """World-model data expansion of one task's source episodes (wc.expand.stage)."""
+
+    task: str  # registered task program whose source episodes are expanded, e.g. lift_handle
+    target_trajectories: int  # source episodes of the task + accepted generated ones wanted (paper: 150)
+    max_attempts: int  # generated episodes tried at most, infeasible plans included
+    batch_size: int  # generated episodes rolled out together (padded to the longest by holding the last action)
+    yaw_range_deg: Range  # extra bag yaw about z through its centroid, on top of the cell's yaw bin offset
+    shift_x_range_m: Range  # bag xy shift, uniform per axis
+    shift_y_range_m: Range
+    task_check: bool = True  # also apply the task's own verdict (lift_handle: not_lifted), as the simulator agent does
+    device: str = "cpu"  # cpu | cuda | cuda:k | auto
+    seed: int = 0
+
+    def validate(self) -> None:
+        if not self.task:
+            raise ValueError("task must name a task program")
+        for name in ("target_trajectories", "max_attempts", "batch_size"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        for name in ("yaw_range_deg", "shift_x_range_m", "shift_y_range_m"):
+            low, high = getattr(self, name)
+            if not low <= high:
+                raise ValueError(f"{name} must be (low, high) with low <= high, got {(low, high)}")
+        if not (self.device in ("cpu", "cuda", "auto") or self.device.startswith("cuda:")):
+            raise ValueError(f"device must be cpu, cuda, cuda:k or auto, got {self.device!r}")

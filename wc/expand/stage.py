@@ -1,0 +1,192 @@
+"""Stage `expand`: more trajectories of one task from the world model (data/expanded/trajectories.zarr,
+reports/expand.json).
+
+Each generated episode starts from a source episode's settled frame 0 (parents taken in turn), moved rigidly
+on the table (wc.expand.transform); the coverage planner proposes its cell, speed and amplitude, the task
+program plans the right arm's actions against the moved state (wc.expand.plan), and WorldContact rolls the
+batch out autoregressively from v = 0 under the prescribed link and table poses (wc.expand.rollout). Every
+rollout then faces the source data's checks (wc.validate.predicates, in their order, plus the task's own
+verdict when `task_check`); only the episodes that pass are written, the others are counted by their first
+failing check. Generation stops when the task's source episodes plus the accepted generated ones reach
+`target_trajectories`, or after `max_attempts` planned episodes; the report says whether the target was met.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import torch
+from tqdm import tqdm
+
+from wc.agent.planner import CoveragePlanner
+from wc.agent.runner import episode_seed
+from wc.config import load_section, params_hash
+from wc.data.store import TrajectoryStore, TrajectoryWriter
+from wc.eval.predictors import CHECKPOINT, WorldContactPredictor
+from wc.expand.config import ExpandConfig
+from wc.expand.plan import PlannedEpisode, SourceEpisode, plan_episode, source_episodes
+from wc.expand.rollout import Rollout, rollout_batch
+from wc.model.layout import scene_layout
+from wc.reports import environment_info, write_json_atomic
+from wc.scene.config import SceneConfig
+from wc.scene.scene import Scene
+from wc.tasks.base import InfeasibleEpisode, Task, get_task
+from wc.train.config import TrainConfig
+from wc.validate.config import ValidateConfig
+from wc.validate.predicates import PREDICATES, first_failure
+from wc.validate.stage import EpisodeScenes
+
+SECTIONS = ["expand", "scene", "tasks", "validate", "train"]
+UNREACHABLE = "unreachable"  # the planner's name for an episode that could not be planned (as in simulate)
+
+
+def resolve_device(name: str) -> torch.device:
+    """torch device of params `expand.device` (auto: CUDA when present)."""
+    if name == "auto":
+        name = "cuda" if torch.cuda.is_available() else "cpu"
+    if name.startswith("cuda") and not torch.cuda.is_available():
+        raise RuntimeError(f"expand.device is {name!r} but CUDA is not available")
+    return torch.device(name)
+
+
+def verdict(task: Task, scene: Scene, task_check: bool, planned: PlannedEpisode, r: Rollout,
+            cfg: ValidateConfig, frame_dt_s: float) -> tuple[str, int] | None:
+    """(first failing check, frame) of a generated episode: the source data's predicates, then (if asked) the
+    task's own verdict on the last frame; None when it passes."""
+    failure = first_failure(scene, r.x, r.v, r.action, r.link_poses, cfg, frame_dt_s=frame_dt_s)
+    if failure is not None or not task_check:
+        return failure
+    reason = task.check(scene, planned.spec, r.x, r.action)
+    return (reason, len(r.x) - 1) if reason else None
+
+
+def _checkpoint_info(model_dir: Path) -> dict[str, Any]:
+    config = json.loads(model_dir.joinpath(CHECKPOINT).with_suffix(".json").read_text())
+    return {"path": str(model_dir), **{k: config.get(k) for k in ("params_hash", "step", "stage", "projection", "dt")}}
+
+
+def _copy_scene(src: TrajectoryStore, writer: TrajectoryWriter) -> None:
+    for o in src.objects.values():
+        writer.add_object(o.name, o.rest_positions, o.faces, o.rest_uv, o.vertex_area, o.kind, o.tag, o.material)
+    for p in src.prescribed.values():
+        writer.add_prescribed(p.name, p.local_points, p.local_normals, p.tag, p.link)
+
+
+def _episode_attrs(planned: PlannedEpisode, source: SourceEpisode) -> dict[str, Any]:
+    s = planned.spec
+    return {"task": s.task, "seed": s.seed, "cell": s.cell, "speed": s.speed, "amplitude": s.amplitude,
+            "split": "train", "accepted": True, "first_failure": None, "source": "worldcontact",
+            "parent": planned.parent, "yaw_deg": planned.yaw_deg, "shift_m": list(planned.shift_m), **source.layout}
+
+
+def expand(params: dict[str, Any], model_dir: str | Path = "models/worldcontact",
+           store: str | Path = "data/source/trajectories.zarr", out: str | Path = "data/expanded/trajectories.zarr",
+           report: str | Path = "reports/expand.json") -> dict[str, Any]:
+    """Generate and check episodes until the target is met or the attempts run out; write the accepted ones
+    to `out` (atomically; possibly none) and the report to `report`. Returns the report."""
+    cfg = load_section(params, "expand", ExpandConfig)
+    scene_cfg = load_section(params, "scene", SceneConfig)
+    validate_cfg = load_section(params, "validate", ValidateConfig)
+    train_cfg = load_section(params, "train", TrainConfig)
+    store, out, model_dir = Path(store), Path(out), Path(model_dir)
+    if not store.exists():
+        raise FileNotFoundError(f"source trajectory store {store} not found: run the validate stage first "
+                                "(`dvc repro validate`)")
+    if not (model_dir / CHECKPOINT).is_file():
+        raise FileNotFoundError(f"world model checkpoint {model_dir / CHECKPOINT} not found: run the train stage "
+                                "first (`dvc repro train`)")
+    if out.resolve() == store.resolve():
+        raise ValueError(f"expand would overwrite its input {store}: choose another output path")
+    started = time.perf_counter()
+    task = get_task(cfg.task, params)
+    src = TrajectoryStore(store)
+    sources, scene = source_episodes(src, task, EpisodeScenes(scene_cfg, src))
+    device = resolve_device(cfg.device)
+    torch.manual_seed(cfg.seed)
+    predictor = WorldContactPredictor.from_dir(model_dir, train_cfg, device)
+    layout = scene_layout(src, list(scene.objects), list(scene.link_names), predictor.tag_scale).to(device)
+    dt = src.dt
+    checkpoint = _checkpoint_info(model_dir)
+    if checkpoint["dt"] is not None and abs(float(checkpoint["dt"]) - dt) > 1e-9:
+        raise ValueError(f"{model_dir}: the model was trained at frame dt {checkpoint['dt']} s, {store} has {dt} s")
+    phash = params_hash(params, SECTIONS)
+
+    planner = CoveragePlanner()  # this run's outcomes only: the simulator's memory is about another dynamics
+    wanted = max(0, cfg.target_trajectories - len(sources))
+    rejections: dict[str, int] = {name: 0 for name in PREDICATES}
+    rejected: list[dict[str, Any]] = []
+    infeasible: list[dict[str, Any]] = []
+    attempts = generated = accepted = frames = 0
+    rollout_s = 0.0
+    with TrajectoryWriter(out, dt=dt, substeps=int(src.attrs["substeps"]), units=src.attrs["units"],
+                          params_hash=phash, created_by="stages.expand", object_order=src.object_names,
+                          link_names=src.link_names, env_names=src.env_names,
+                          chunk_frames=src.chunk_frames(sources[0].eid)) as writer, \
+            tqdm(total=wanted, desc=f"expand {task.name}", unit="trajectory") as bar:
+        _copy_scene(src, writer)
+        while accepted < wanted and attempts < cfg.max_attempts:
+            planned: list[tuple[PlannedEpisode, SourceEpisode]] = []
+            for i in range(attempts, attempts + min(cfg.batch_size, wanted - accepted, cfg.max_attempts - attempts)):
+                spec = planner.propose(task, episode_seed(cfg.seed, 0, i))
+                source = sources[i % len(sources)]
+                try:
+                    planned.append((plan_episode(task, scene, source, spec, cfg, dt), source))
+                except InfeasibleEpisode as err:
+                    planner.record(spec, UNREACHABLE)
+                    infeasible.append({"seed": spec.seed, "cell": spec.cell, "parent": source.eid, "reason": str(err)})
+                attempts += 1
+            if not planned:
+                continue
+            t0 = time.perf_counter()
+            rollouts = rollout_batch(predictor, layout, scene, [p for p, _ in planned], dt, device)
+            rollout_s += time.perf_counter() - t0
+            for (p, source), r in zip(planned, rollouts):
+                failure = verdict(task, scene, cfg.task_check, p, r, validate_cfg, dt)
+                planner.record(p.spec, *(failure or (None, None)))
+                generated += 1
+                frames += len(r.x)
+                if failure is not None:
+                    rejections[failure[0]] = rejections.get(failure[0], 0) + 1
+                    rejected.append({"seed": p.spec.seed, "cell": p.spec.cell, "parent": p.parent,
+                                     "reason": failure[0], "frame": failure[1], "frames": len(r.x)})
+                    continue
+                writer.add_episode(r.x, r.v, r.action, r.link_poses, r.env_poses, **_episode_attrs(p, source))
+                accepted += 1
+                bar.update(1)
+            bar.set_postfix(generated=generated, rejected=generated - accepted)
+    wall = time.perf_counter() - started
+    result = {
+        "task": task.name,
+        "source_episodes": len(sources),
+        "target_trajectories": cfg.target_trajectories,
+        "wanted_generated": wanted,
+        "attempts": attempts,
+        "infeasible_plans": len(infeasible),
+        "generated": generated,
+        "accepted": accepted,
+        "rejected": generated - accepted,
+        "rejections": rejections,
+        "acceptance_rate": accepted / generated if generated else None,
+        "expanded_total": len(sources) + accepted,
+        "target_reached": len(sources) + accepted >= cfg.target_trajectories,
+        "frames_generated": frames,
+        "rollout_s": rollout_s,
+        "model_frames_per_s": frames / rollout_s if rollout_s else None,
+        "wall_s": wall,
+        "trajectories_per_min": 60.0 * generated / wall,
+        "accepted_per_min": 60.0 * accepted / wall,
+        "coverage": planner.coverage(task),
+        "rejected_episodes": rejected,
+        "infeasible": infeasible,
+        "device": str(device),
+        "model": checkpoint,
+        "store": str(store),
+        "out": str(out),
+        "params_hash": phash,
+        "environment": environment_info(str(device)),
+    }
+    write_json_atomic(report, result)
+    return result
