@@ -6,6 +6,8 @@ import csv
 import json
 import os
 import platform
+import secrets
+import shutil
 from pathlib import Path
 from collections.abc import Iterable
 from typing import Any
@@ -78,3 +80,22 @@ def pyplot() -> Any:
     import matplotlib.pyplot as plt
 
     return plt
+
+
+def replace_dir(tmp: str | Path, path: str | Path) -> None:
+    """Rename the finished directory `tmp` to `path`, swapping out what was there; on failure the old one stays.
+
+    Callers check first that `path` is theirs to replace (e.g. a dataset or a saved model).
+    """
+    tmp, path = Path(tmp), Path(path)
+    old = path.with_name(f".{path.name}.old-{os.getpid()}-{secrets.token_hex(4)}") if path.exists() else None
+    if old is not None:
+        os.rename(path, old)
+    try:
+        os.rename(tmp, path)
+    except BaseException:
+        if old is not None:
+            os.rename(old, path)
+        raise
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)

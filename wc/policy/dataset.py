@@ -32,6 +32,7 @@ from tqdm import tqdm
 from wc.data.store import ACTION_DIM, TrajectoryStore
 from wc.policy.dataset_config import DatasetConfig
 from wc.render.frames import RenderedStore
+from wc.reports import replace_dir
 
 RIGHT_ARM = slice(7, 14)  # columns of the store action: q_R (6, rad), d_R (m)
 CAMERAS = {"top": "observation.images.top", "wrist": "observation.images.wrist"}  # rendered camera -> feature
@@ -134,18 +135,7 @@ def _check_target(path: Path) -> None:
 def _replace_dir(tmp: Path, path: Path) -> None:
     """Rename the finished `tmp` to `path`, replacing a previous dataset there."""
     _check_target(path)
-    old = None
-    if path.exists():
-        old = path.with_name(f".{path.name}.old-{os.getpid()}-{secrets.token_hex(4)}")
-        os.rename(path, old)
-    try:
-        os.rename(tmp, path)
-    except BaseException:
-        if old is not None:
-            os.rename(old, path)
-        raise
-    if old is not None:
-        shutil.rmtree(old, ignore_errors=True)
+    replace_dir(tmp, path)
 
 
 def _provenance(episodes: Sequence[EpisodeSource]) -> list[dict[str, Any]]:

@@ -38,6 +38,7 @@ from torch.optim.lr_scheduler import LRScheduler
 from tqdm import tqdm
 
 from wc.policy.policy_config import PolicyConfig
+from wc.reports import replace_dir
 from wc.policy.pretrained import checkpoint_weights, check_weights_loaded, tokenizer_dir
 from wc.policy.processors import load_processors, make_processors
 
@@ -227,17 +228,7 @@ def _replace_dir(tmp: Path, path: Path) -> None:
         raise FileExistsError(f"{path} exists and is not a directory; refusing to replace it")
     if path.is_dir() and any(path.iterdir()) and not (path / SUMMARY_FILE).is_file():
         raise FileExistsError(f"{path} is a non-empty directory that is not a saved policy; refusing to replace it")
-    old = path.with_name(f".{path.name}.old-{os.getpid()}-{secrets.token_hex(4)}") if path.exists() else None
-    if old is not None:
-        os.rename(path, old)
-    try:
-        os.rename(tmp, path)
-    except BaseException:
-        if old is not None:
-            os.rename(old, path)
-        raise
-    if old is not None:
-        shutil.rmtree(old, ignore_errors=True)
+    replace_dir(tmp, path)
 
 
 def load_policy(path: str | Path, device: str = "cpu", tokenizer: str | Path | None = None

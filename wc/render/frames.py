@@ -23,6 +23,8 @@ from typing import Any
 import numpy as np
 import zarr
 
+from wc.reports import replace_dir
+
 RENDERED_SCHEMA = "worldcontact-rendered/1"
 
 
@@ -77,13 +79,7 @@ class RenderedWriter:
         if exc_type is not None:
             shutil.rmtree(tmp, ignore_errors=True)
             return
-        old = None
-        if self.path.exists():
-            old = self.path.with_name(f"{self.path.name}.tmp-old-{secrets.token_hex(4)}")
-            os.rename(self.path, old)
-        os.rename(tmp, self.path)
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
+        replace_dir(tmp, self.path)
 
 
 class RenderedStore:
