@@ -119,6 +119,27 @@ def test_one_training_step_lowers_the_loss_on_a_fixed_batch(store_path, params):
         assert float(loss()) < float(before)
 
 
+@pytest.mark.parametrize("mode", ["integrate", "direct"])
+def test_position_update_modes(store_path, params, mode):
+    """"integrate": X̂ = X + Δt·V̂ + ΔX (positions follow the predicted velocity); "direct": X̂ = X + ΔX."""
+    from dataclasses import replace
+
+    from wc.model.layout import boundary_samples
+    from wc.model.worldcontact import advance
+    cfg, layout, a = _batch(store_path, params)
+    model = WorldContact(replace(cfg, position_update=mode), velocity_m_s=0.3, delta_x_m=0.005,
+                         delta_v_m_s=0.1).eval()
+    x, v = a["x"][:, 0], a["v"][:, 0]
+    controllable, environment = boundary_samples(layout, a["poses"][:, 0], a["poses"][:, 1], 0.04)
+    with torch.no_grad():
+        dx, dv = model(x, v, layout, controllable, environment)
+        x1, v1 = advance(model, x, v, layout, controllable, environment, 0.04)
+    torch.testing.assert_close(v1, v + dv)
+    torch.testing.assert_close(x1, x + dx + 0.04 * v1 if mode == "integrate" else x + dx)
+    with pytest.raises(ValueError, match="position_update"):
+        replace(cfg, position_update="euler").validate()
+
+
 def test_checkpoint_reloads_to_identical_predictions(store_path, params, tmp_path):
     cfg, layout, a = _batch(store_path, params)
     model = WorldContact(cfg, velocity_m_s=0.3, delta_x_m=0.005, delta_v_m_s=0.1).eval()
@@ -167,7 +188,11 @@ def test_stage_writes_model_report_and_curves(trained):
     assert json.loads((d / "train.json").read_text())["params_hash"] == report["params_hash"]
     assert report["parameters"] == {"tokenizer": 57993, "encoder": 782784, "decoder": 1116480, "head": 42502,
                                     "total": 1999759}
-    assert report["validation"] == "val split" and report["final_stage"] == "projection"
+    assert report["validation"] == "val split"
+    by_stage = report["best_val_loss_by_stage"]  # the stage that validates better ships
+    assert set(by_stage) == {"base", "projection"}
+    assert report["final_stage"] == min(by_stage, key=by_stage.get)
+    assert report["best_val_loss"] == by_stage[report["final_stage"]]
     assert [h["step"] for h in report["history"]] == [3, 6, 8]
     assert {h["stage"] for h in report["history"]} == {"base", "projection"}
     for name in ("model", "base", "last"):
@@ -175,7 +200,7 @@ def test_stage_writes_model_report_and_curves(trained):
     assert not Path(f"{d / 'model'}.partial").exists()
     assert (d / "train_loss.png").stat().st_size > 0 and len((d / "train_loss.csv").read_text().splitlines()) == 4
     model, meta = load_model(d / "model" / "model.safetensors")
-    assert meta["projection"] is True and meta["stage"] == "projection"
+    assert meta["stage"] == report["final_stage"] and meta["projection"] is (report["final_stage"] == "projection")
     assert report["s_per_step_median"] > 0 and np.isfinite(report["best_val_loss"])
 
 

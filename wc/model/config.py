@@ -29,6 +29,11 @@ class ModelConfig:
     rope_max_wavelength_m: float = 1.0
     tokenizer: Literal["contact", "linear"] = "contact"  # "linear": the no-contact-tokenizer ablation
     compress: bool = True  # False: the no-hierarchical-compression ablation (full-resolution attention)
+    # How the head's Δx becomes X̂ (the paper is silent on the output parametrisation):
+    # "integrate": X̂ = X + Δt·V̂ + ΔX, ΔX a residual on the semi-implicit Euler step (positions follow the
+    # predicted velocities, as they do in the stored frames, where V is the frame displacement / Δt);
+    # "direct": X̂ = X + ΔX, the paper's equation taken literally.
+    position_update: Literal["integrate", "direct"] = "integrate"
 
     def validate(self) -> None:
         for name in ("spatial_radius_m", "topology_radius_m", "controllable_radius_m", "environment_radius_m",
@@ -40,6 +45,8 @@ class ModelConfig:
         for name in ("kernel_size", "encoder_levels", "decoder_layers", "heads", "decoder_ffn_hidden"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.position_update not in ("integrate", "direct"):
+            raise ValueError(f"position_update must be 'integrate' or 'direct', got {self.position_update!r}")
         if not 0.0 <= self.dropout < 1.0:
             raise ValueError(f"dropout must be in [0, 1), got {self.dropout}")
 

@@ -84,10 +84,12 @@ class WorldContact(nn.Module):
 def advance(model: WorldContact, x: torch.Tensor, v: torch.Tensor, layout: SceneLayout, controllable: Samples,
             environment: Samples, dt: float,
             projection: TopologyProjection | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-    """One predicted frame: X̂ = X + ΔX, V̂ = V + ΔV; with P, X̂ = P(X̃) and V̂ = (X̂_{t+Δt} − X̂_t)/Δt (Eq. projection_finetune)."""
+    """One predicted frame: V̂ = V + ΔV and X̂ = X + ΔX ("direct") or X + Δt·V̂ + ΔX ("integrate");
+    with P, X̂ = P(X̃) and V̂ = (X̂_{t+Δt} − X̂_t)/Δt (Eq. projection_finetune)."""
     dx, dv = model(x, v, layout, controllable, environment)
-    x_next = x + dx
+    v_next = v + dv
+    x_next = x + dx + dt * v_next if model.config.position_update == "integrate" else x + dx
     if projection is None:
-        return x_next, v + dv
+        return x_next, v_next
     x_next = projection(x, x_next)
     return x_next, (x_next - x) / dt

@@ -2,7 +2,8 @@
 
 Output directory (written under `<out>.partial/`, renamed into place when both stages finish, so an
 interrupted run leaves no half-written model; `resume=True` continues from the partial's last state):
-    model.safetensors + model.json   best validation loss of the last stage that ran
+    model.safetensors + model.json   the lower best validation loss of the two stages (its json says
+                                     whether it rolls out with the projection)
     base.safetensors + base.json     best of the base stage
     last.safetensors + last.json, last_state.pt   the latest step (resume)
 """
@@ -194,8 +195,14 @@ def _projector(model: WorldContact, cfg: TrainConfig, stage: str):  # noqa: ANN2
 
 def _finish(model: WorldContact, work: Path, out_dir: Path, cfg: TrainConfig, data: TrainData,
             history: list[dict[str, Any]], step_times: list[float], procs: distributed.Processes) -> dict[str, Any]:
-    """Promote the final stage's best weights to model.*, rename the work dir into place, build the report."""
-    final = "projection" if cfg.projection.steps > 0 else "base"
+    """Promote the best stage's best weights to model.*, rename the work dir into place, build the report.
+
+    Both stages' validation losses compare rollouts with the truth on the same windows, so the projection
+    stage's model ships only when it validates better than the base stage's.
+    """
+    best = {stage: min((h["val_loss"] for h in history if h["stage"] == stage), default=float("inf"))
+            for stage in ("base", "projection")}
+    final = min(best, key=lambda stage: best[stage])
     for suffix in (".safetensors", ".json"):
         shutil.copyfile(work / f"{final}{suffix}", work / f"model{suffix}")
     if out_dir.exists():
@@ -209,7 +216,8 @@ def _finish(model: WorldContact, work: Path, out_dir: Path, cfg: TrainConfig, da
         "steps": {"base": cfg.base.steps, "projection": cfg.projection.steps},
         "train_windows": len(data.train_windows), "val_windows": len(data.val_windows),
         "scales": asdict(data.scales), "history": history,
-        "best_val_loss": min((h["val_loss"] for h in history if h["stage"] == final), default=float("nan")),
+        "best_val_loss": best[final],
+        "best_val_loss_by_stage": {stage: loss for stage, loss in best.items() if np.isfinite(loss)},
         "zero_motion_val_loss": last.get("zero_motion_loss", float("nan")),
         "constant_velocity_val_loss": last.get("constant_velocity_loss", float("nan")),
         "rollout_position_mse_m2": last.get("rollout_position_mse_m2", float("nan")),
