@@ -6,7 +6,12 @@
 from __future__ import annotations
 
 import argparse
+import multiprocessing
 import time
+from collections import deque
+from collections.abc import Iterator
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from contextlib import closing
 from pathlib import Path
 from typing import Any
 
@@ -15,8 +20,8 @@ from tqdm import tqdm
 
 from wc.agent.lift_plot import write_lift_curves
 from wc.agent.memory import FailureMemory
-from wc.agent.planner import CoveragePlanner
-from wc.agent.runner import AgentConfig, build_task_world, run_episodes
+from wc.agent.parallel import TaskResult, init_worker, run_task
+from wc.agent.runner import AgentConfig
 from wc.config import add_params_arguments, load_section, params_hash, read_params
 from wc.data.store import TrajectoryWriter
 from wc.reports import environment_info, write_json_atomic
@@ -46,59 +51,100 @@ def store_scene(scene_cfg: SceneConfig, tasks: list[Task]) -> Scene:
     return build_scene(scene_cfg, objects, held={n: held[n] for n in OBJECT_KINDS if n in held})
 
 
+def output_params(params: dict[str, Any]) -> dict[str, Any]:
+    """`params` without agent.workers: how many processes run the tasks does not change the output."""
+    return {**params, "agent": {k: v for k, v in params["agent"].items() if k != "workers"}}
+
+
+def task_results(params: dict[str, Any], keys: dict[str, str], memory: FailureMemory,
+                 workers: int) -> Iterator[TaskResult]:
+    """Each task's result, in task order (`keys`: task name -> task key). A task starts from the outcomes
+    `memory` holds under its key when it starts. workers == 1: one after another in this process;
+    else in that many spawned worker processes, at most `workers` tasks in flight."""
+    names = list(keys)
+    if workers == 1:
+        for index, name in enumerate(names):
+            try:
+                yield run_task(params, index, keys[name], memory.outcomes(keys[name]))
+            except Exception as err:
+                err.add_note(f"while simulating task {name!r}")
+                raise
+        return
+    # spawn, not fork: warp/Newton must not be forked once initialised; kernels come from ~/.cache/warp
+    with ProcessPoolExecutor(min(workers, len(names)), mp_context=multiprocessing.get_context("spawn"),
+                             initializer=init_worker, initargs=(torch.get_num_threads(),)) as pool:
+        waiting = deque(range(len(names)))  # task order: their costs are not known in advance
+        running: dict[Future[TaskResult], int] = {}
+        finished: dict[int, TaskResult] = {}
+        for index in range(len(names)):
+            while index not in finished:
+                while waiting and len(running) < workers:
+                    i = waiting.popleft()
+                    running[pool.submit(run_task, params, i, keys[names[i]], memory.outcomes(keys[names[i]]))] = i
+                done, _ = wait(running, return_when=FIRST_COMPLETED)
+                for future in sorted(done, key=running.__getitem__):  # the first failing task in task order
+                    i = running.pop(future)
+                    try:
+                        finished[i] = future.result()
+                    except Exception as err:  # the tasks still running are waited for, none is started
+                        raise RuntimeError(f"simulate: task {names[i]!r} failed in a worker process: "
+                                           f"{type(err).__name__}: {err}") from err
+            yield finished.pop(index)
+
+
 def simulate(params: dict[str, Any], out: str | Path = "data/source/raw.zarr",
              report: str | Path = "reports/simulate.json",
              memory: str | Path | None = "data/agent/memory.json") -> dict[str, Any]:
-    """Run every configured task until it has its accepted episodes (or runs out of attempts); write
-    the raw store (accepted and rejected episodes), the report, lift curves beside the report
-    (simulate_lift.csv / .png), and append the outcomes to the agent's failure memory (None: none)."""
+    """Run every configured task until it has its accepted episodes (or runs out of attempts), in
+    `agent.workers` processes; write the raw store (accepted and rejected episodes, in task order), the
+    report, lift curves beside the report (simulate_lift.csv / .png), and append the outcomes to the
+    agent's failure memory (None: none), saved after each task."""
     scene_cfg = load_section(params, "scene", SceneConfig)
     sim_cfg = load_section(params, "sim", SimConfig)
     agent_cfg = load_section(params, "agent", AgentConfig)
-    validate_cfg = load_section(params, "validate", ValidateConfig)
+    load_section(params, "validate", ValidateConfig)  # bad input fails before any output
     tasks = [get_task(name, params) for name in agent_cfg.tasks]
     union = store_scene(scene_cfg, tasks)
-    phash = params_hash(params, SECTIONS)
+    phash = params_hash(output_params(params), SECTIONS)
+    keys = {t.name: task_key(params, t.name) for t in tasks}
+    if agent_cfg.workers > 1 and len(set(keys.values())) < len(keys):
+        raise ValueError("tasks with identical params share their outcomes, so they cannot run in separate "
+                         "workers; set agent.workers=1")
     outcomes = FailureMemory.load(memory) if memory is not None else FailureMemory()
-    planner = CoveragePlanner(outcomes, {t.name: task_key(params, t.name) for t in tasks})
     per_task: dict[str, dict[str, Any]] = {}
     frames = steps = 0
     curves = {}
     started = time.perf_counter()
-    with TrajectoryWriter(out, dt=sim_cfg.frame_dt_s, substeps=sim_cfg.substeps, params_hash=phash,
-                          created_by="stages.simulate", object_order=list(union.objects),
-                          link_names=list(union.link_names), env_names=list(union.env_names)) as writer:
+    with (TrajectoryWriter(out, dt=sim_cfg.frame_dt_s, substeps=sim_cfg.substeps, params_hash=phash,
+                           created_by="stages.simulate", object_order=list(union.objects),
+                           link_names=list(union.link_names), env_names=list(union.env_names)) as writer,
+          closing(task_results(params, keys, outcomes, agent_cfg.workers)) as results,
+          tqdm(results, total=len(tasks), desc="simulate", unit="task") as bar):
         writer.add_scene(union, {name: getattr(sim_cfg, name).__dict__ for name in union.objects})
-        for task_index, task in enumerate(tasks):
-            task_started = time.perf_counter()
-            world = build_task_world(scene_cfg, sim_cfg, task)
+        for result in bar:
             failures: dict[str, int] = {}
-            accepted = episodes = task_frames = 0
-            with tqdm(desc=f"simulate {task.name}", unit="frame") as bar:
-                for record in run_episodes(world, planner, task_index, agent_cfg.episodes_per_task,
-                                           agent_cfg.max_attempts_per_task, agent_cfg.seed, validate_cfg,
-                                           on_frame=lambda: bar.update(world.sim.worlds)):
-                    spec, episodes = record.spec, episodes + 1
-                    if record.first_failure:
-                        failures[record.first_failure] = failures.get(record.first_failure, 0) + 1
-                    if record.x is None:  # never simulated, or not storable
-                        continue
-                    eid = writer.add_episode(record.x, record.v, record.action, record.link_poses, record.env_poses,
-                                             task=spec.task, seed=spec.seed, cell=spec.cell, speed=spec.speed,
-                                             amplitude=spec.amplitude, split=None,
-                                             accepted=record.first_failure is None,
-                                             first_failure=record.first_failure, failure_frame=record.failure_frame,
-                                             source="simulator", **record.layout)
-                    task_frames += len(record.x)
-                    lowest = record.x[..., 2].min(axis=1) - world.scene.table.top_z
-                    curves[eid] = (lowest, f"{task.name} cell {spec.cell}: {record.first_failure or 'accepted'}")
-                    accepted += record.first_failure is None
-                    bar.set_postfix(accepted=accepted)
+            accepted = task_frames = 0
+            for record in result.records:
+                spec = record.spec
+                outcomes.record(keys[result.task], spec, record.first_failure, record.failure_frame)
+                if record.first_failure:
+                    failures[record.first_failure] = failures.get(record.first_failure, 0) + 1
+                if record.x is None:  # never simulated, or not storable
+                    continue
+                eid = writer.add_episode(record.x, record.v, record.action, record.link_poses, record.env_poses,
+                                         task=spec.task, seed=spec.seed, cell=spec.cell, speed=spec.speed,
+                                         amplitude=spec.amplitude, split=None, accepted=record.first_failure is None,
+                                         first_failure=record.first_failure, failure_frame=record.failure_frame,
+                                         source="simulator", **record.layout)
+                task_frames += len(record.x)
+                lowest = record.x[..., 2].min(axis=1) - result.table_top_z
+                curves[eid] = (lowest, f"{result.task} cell {spec.cell}: {record.first_failure or 'accepted'}")
+                accepted += record.first_failure is None
             frames += task_frames
-            steps += world.solver_steps
-            per_task[task.name] = {"episodes": episodes, "accepted": accepted, "frames": task_frames,
-                                   "wall_s": time.perf_counter() - task_started, "failures": failures,
-                                   **planner.coverage(task)}
+            steps += result.solver_steps
+            per_task[result.task] = {"episodes": len(result.records), "accepted": accepted, "frames": task_frames,
+                                     "wall_s": result.wall_s, "failures": failures, **result.coverage}
+            bar.set_postfix(task=result.task, accepted=sum(t["accepted"] for t in per_task.values()))
             if memory is not None:
                 outcomes.save()  # after every task: an interrupted run keeps what it learnt
     wall = time.perf_counter() - started
@@ -111,6 +157,7 @@ def simulate(params: dict[str, Any], out: str | Path = "data/source/raw.zarr",
         "wall_s": wall,
         "episodes_per_min": 60.0 * sum(t["episodes"] for t in per_task.values()) / wall,
         "solver_steps_per_s": steps / wall,
+        "workers": agent_cfg.workers,
         "simulated_s_per_wall_s": steps * sim_cfg.dt_s / wall,
         "params_hash": phash,
         "tasks": per_task,

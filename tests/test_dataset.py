@@ -123,6 +123,7 @@ def test_report_counts(built: dict[str, Any], inputs: dict[str, Path]) -> None:
     assert report["datasets"]["source"]["episodes"] == n_src == 2
     assert report["datasets"]["expanded"]["episodes"] == n_src + n_exp == 4
     assert report["datasets"]["expanded"]["frames"] == (n_src + n_exp) * T
+    assert report["generated_episodes"] == n_exp
     assert report["skipped_episodes"]["source"] == {"other_task": 1, "split": 1, "rejected": 0}
     assert report["skipped_episodes"]["expanded"]["other_task"] == 1
     assert len(report["params_hash"]) == 16 and report["wall_s"] > 0

@@ -32,10 +32,16 @@ class AgentConfig:
     episodes_per_task: int  # accepted episodes wanted per task
     max_attempts_per_task: int  # give up on a task after this many episodes
     seed: int  # stage seed; episode seeds derive from it
+    workers: int = 1  # tasks run at once, one process each; 1: in the calling process (same episodes either way)
 
     def validate(self) -> None:
         if not self.tasks:
             raise ValueError("tasks must name at least one task")
+        repeated = sorted({t for t in self.tasks if self.tasks.count(t) > 1})
+        if repeated:
+            raise ValueError(f"tasks must not repeat, got {repeated} more than once")
+        if self.workers < 1:
+            raise ValueError(f"workers must be >= 1, got {self.workers}")
         if self.episodes_per_task < 1:
             raise ValueError(f"episodes_per_task must be >= 1, got {self.episodes_per_task}")
         if self.max_attempts_per_task < self.episodes_per_task:

@@ -65,9 +65,9 @@ def build_datasets(params: dict[str, Any],
     if cfg.include_expanded:
         exp = _open(paths["expanded trajectories"], paths["expanded frames"], "expanded")
         expanded, skipped["expanded"] = select_episodes("expanded", *exp, cfg.task)
-        if not expanded:
-            raise ValueError(f"dataset: no accepted {cfg.task!r} episodes in {paths['expanded trajectories']} "
-                             f"(skipped: {skipped['expanded']}); the expanded dataset would equal the source one")
+        if not expanded:  # the pipeline goes on, and the report says the two datasets hold the same episodes
+            print(f"dataset: WARNING no accepted {cfg.task!r} episodes in {paths['expanded trajectories']} "
+                  f"(skipped: {skipped['expanded']}); the expanded dataset equals the source one", flush=True)
         plan["expanded"] = source + expanded
 
     datasets: dict[str, Any] = {"source": None, "expanded": None}
@@ -78,6 +78,7 @@ def build_datasets(params: dict[str, Any],
         check_loads(out / name, summary["repo_id"], summary["episodes"], summary["frames"])
         datasets[name] = summary
     result = {"datasets": datasets, "skipped_episodes": skipped, "include_expanded": cfg.include_expanded,
+              "generated_episodes": len(plan["expanded"]) - len(source) if "expanded" in plan else None,
               "params_hash": digest, "wall_s": time.perf_counter() - started, "environment": environment_info("cpu")}
     write_json_atomic(report, result)
     return result

@@ -8,15 +8,16 @@ distinguishable in both views; fingers are darker than the arm, so the grasp rea
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
 
 from wc.data.store import TrajectoryStore
-from wc.scene.config import SceneConfig
+from wc.scene.config import SceneConfig, TableConfig
 from wc.scene.robot_geometry import LinkShape, piper_link_shapes
-from wc.scene.scene import build_objects
+from wc.scene.scene import Scene, build_objects
 from wc.validate.stage import episode_held
 
 Rgb = tuple[float, float, float]
@@ -95,10 +96,8 @@ def episode_geometry(store: TrajectoryStore, eid: str, scene_cfg: SceneConfig) -
     the held pose before the handoff."""
     where = f"{store.path}: episode {eid}"
     layout = store.episode_layout(eid)
-    surfaces = tuple(Surface(name, rows, np.asarray(store.objects[name].faces, np.int32),
-                             OBJECT_COLORS.get(name, DEFAULT_OBJECT_COLOR)) for name, rows in layout.items())
     links = store.episode_links(eid)
-    bodies = [b for k, name in enumerate(links) if (b := _robot_body(name, k)) is not None]
+    held = {}
     for obj in episode_held(store.episode_attrs(eid), where):
         if obj in layout:
             continue
@@ -110,10 +109,35 @@ def episode_geometry(store: TrajectoryStore, eid: str, scene_cfg: SceneConfig) -
         if stored is not None and stored.local_points.shape != mesh.vertices.shape:
             raise ValueError(f"{where}: held {obj!r} rebuilt from params `scene` has {len(mesh.vertices)} vertices, "
                              f"the store's {len(stored.local_points)}: the scene params changed since simulate")
+        held[obj] = (mesh.vertices, mesh.faces)
+    faces = {name: store.objects[name].faces for name in layout}
+    rest = {name: store.objects[name].rest_positions for name in layout}
+    return _assemble(layout, faces, rest, links, held, scene_cfg.table)
+
+
+def scene_geometry(scene: Scene) -> EpisodeGeometry:
+    """Render geometry of a live scene (closed-loop evaluation): x rows in `scene.objects` order, link_poses
+    columns `scene.link_names`; held objects that are not also predicted are drawn from their pose column."""
+    layout = scene.vertex_slices()
+    held = {h.mesh.name: (h.mesh.vertices, h.mesh.faces) for h in scene.held.values() if h.mesh.name not in layout}
+    return _assemble(layout, {n: m.faces for n, m in scene.objects.items()},
+                     {n: m.vertices for n, m in scene.objects.items()}, scene.link_names, held, scene.table)
+
+
+def _assemble(layout: dict[str, slice], faces: dict[str, np.ndarray], rest: dict[str, np.ndarray],
+              links: Sequence[str], held: dict[str, tuple[np.ndarray, np.ndarray]],
+              table: TableConfig) -> EpisodeGeometry:
+    """Surfaces of the predicted objects (rows `layout`, rest shapes `rest`), robot link bodies and held
+    objects (name -> body-frame (vertices, faces), posed by column held_<name> of `links`)."""
+    links = list(links)
+    surfaces = tuple(Surface(name, rows, np.asarray(faces[name], np.int32),
+                             OBJECT_COLORS.get(name, DEFAULT_OBJECT_COLOR)) for name, rows in layout.items())
+    bodies = [b for k, name in enumerate(links) if (b := _robot_body(name, k)) is not None]
+    for obj, (vertices, tris) in held.items():
+        column = f"{HELD_PREFIX}{obj}"
         bodies.append(Body(column, links.index(column), (),
-                           (np.asarray(mesh.vertices, np.float32), np.asarray(mesh.faces, np.int32)),
+                           (np.asarray(vertices, np.float32), np.asarray(tris, np.int32)),
                            OBJECT_COLORS.get(obj, DEFAULT_OBJECT_COLOR)))
-    table = scene_cfg.table
-    rest = np.concatenate([store.objects[n].rest_positions for n in layout]).astype(np.float32)
+    positions = np.concatenate([rest[n] for n in layout]).astype(np.float32)
     return EpisodeGeometry(surfaces, tuple(bodies), tuple(table.center_m), tuple(table.half_extents_m),
-                           rest, tuple(links))
+                           positions, tuple(links))

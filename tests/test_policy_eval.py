@@ -1,0 +1,187 @@
+"""policy_eval on real Newton and real lerobot at tiny size: the env's spaces and frames, the success
+predicate, the task's own program replayed closed-loop succeeds, the stage end to end with two tiny random
+ACT policies, lerobot's make_env builds the env from the plugin config, and clear errors."""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import torch
+import yaml
+
+from wc.config import ParamsError, load_section, read_params
+from wc.policy.dataset import RIGHT_ARM
+from wc.policy_eval.config import PolicyEvalConfig
+from wc.policy_eval.env import WorldContactLiftEnv
+from wc.policy_eval.rollout import OracleActor, run_episode
+from wc.policy_eval.stage import policy_dirs, run
+from wc.policy_eval.success import LiftHoldMonitor, first_success, hold_frames
+
+SIZE = 32  # px: both cameras
+ORACLE_SEED = 2  # a trial whose planned program lifts the bag (lowest vertex > 5 cm from frame 64) at the default physics
+ORACLE = dict(lift_height_m=0.04, hold_s=0.2)  # margin below the 5.1-5.4 cm it reaches; a short hold keeps it ~70 steps
+
+
+def _params(**policy_eval: Any) -> dict[str, Any]:
+    params = read_params("params.yaml")
+    params["render"].update(width=SIZE, height=SIZE)
+    params["policy_eval"].update(device="cpu", **policy_eval)
+    return params
+
+
+@pytest.fixture(scope="module")
+def env() -> WorldContactLiftEnv:
+    return WorldContactLiftEnv(_params(max_steps=None, **ORACLE))
+
+
+# --- the success predicate -------------------------------------------------------------------------------------
+
+def test_success_needs_an_unbroken_hold() -> None:
+    assert hold_frames(2.0, 0.04) == 50 and hold_frames(0.0, 0.04) == 0 and hold_frames(0.05, 0.04) == 2
+    lift, hold = 0.05, 3
+    assert first_success([0.0, 0.05, 0.06, 0.07, 0.08, 0.09], lift, hold) == 4  # 3 intervals after frame 1
+    assert first_success([0.0, 0.06, 0.06, 0.049, 0.06, 0.06, 0.06], lift, hold) is None  # broken once
+    assert first_success([0.06, 0.06, 0.06, 0.06], lift, 0) == 0
+    monitor = LiftHoldMonitor(lift, hold)
+    for h in (0.01, 0.02):
+        monitor.update(h)
+    assert monitor.failure() == "not_lifted"
+    monitor.update(0.07)
+    assert monitor.failure() == "not_held" and monitor.max_height_m == pytest.approx(0.07)
+    monitor.update(0.0)
+    assert monitor.failure() == "dropped"
+    with pytest.raises(ValueError, match="not finite"):
+        monitor.update(float("nan"))
+
+
+# --- the environment on real Newton ----------------------------------------------------------------------------
+
+def test_reset_and_step_shapes_and_frames(env: WorldContactLiftEnv) -> None:
+    obs, info = env.reset(seed=ORACLE_SEED)
+    assert set(obs) == {"pixels", "agent_pos"} and set(obs["pixels"]) == {"top", "wrist"}
+    for image in obs["pixels"].values():
+        assert image.shape == (SIZE, SIZE, 3) and image.dtype == np.uint8 and image.std() > 5  # a scene, not a fill
+    assert obs["agent_pos"].dtype == np.float32 and obs["agent_pos"].shape == (7,)
+    np.testing.assert_array_equal(obs["agent_pos"], env.planned_actions[0, RIGHT_ARM])
+    assert info["is_success"] is False and info["episode_seed"] == 2**32 + ORACLE_SEED
+    assert env.observation_space.contains(obs)
+    start = env._resets[ORACLE_SEED][1]  # the settled frame-0 state (x, v)
+    np.testing.assert_array_equal(env.x, start.x)
+    planned = env.planned_actions[:4]
+    for k in range(1, 4):
+        obs, reward, terminated, truncated, info = env.step(planned[k, RIGHT_ARM])
+        assert (reward, terminated, truncated, info["steps"]) == (0.0, False, False, k)
+    np.testing.assert_array_equal(obs["agent_pos"], planned[3, RIGHT_ARM])
+    assert env.render().shape == (SIZE, 2 * SIZE, 3)
+    # the closed loop steps the simulator exactly as the simulate stage's open-loop rollout does
+    x_loop = env.x.copy()
+    x_open, _ = env.world.sim.rollout(start, planned)
+    np.testing.assert_allclose(x_loop, x_open[3], rtol=0, atol=1e-6)
+    with pytest.raises(ValueError, match=r"action must be \(7,\)"):
+        env.step(np.zeros(14, np.float32))
+
+
+def test_task_program_replayed_closed_loop_succeeds(env: WorldContactLiftEnv) -> None:
+    outcome, frames, s_per_step = run_episode(env, OracleActor(env), ORACLE_SEED, record=True)
+    assert outcome.success and outcome.failure is None, outcome
+    assert outcome.max_lift_m >= env.cfg.lift_height_m
+    assert outcome.steps < env._max_episode_steps and len(frames) == outcome.steps + 1
+    # a policy that leaves the bag on the table fails with not_lifted, truncated at max_steps
+    env.cfg = dataclasses.replace(env.cfg, max_steps=3)
+    hold = lambda observation: observation["agent_pos"].copy()  # noqa: E731
+    hold.reset = lambda: None
+    outcome, _, _ = run_episode(env, hold, ORACLE_SEED)
+    assert (outcome.success, outcome.failure, outcome.steps) == (False, "not_lifted", 3)
+
+
+# --- the stage with two tiny random ACT policies ---------------------------------------------------------------
+
+def _tiny_act(path: Path, seed: int) -> None:
+    """A randomly initialised ACT policy + processors, saved the lerobot way (what finetune writes)."""
+    from lerobot.configs import FeatureType, PolicyFeature
+    from lerobot.policies import make_pre_post_processors
+    from lerobot.policies.act import ACTConfig, ACTPolicy
+
+    torch.manual_seed(seed)
+    image = PolicyFeature(type=FeatureType.VISUAL, shape=(3, SIZE, SIZE))
+    vector = PolicyFeature(type=FeatureType.STATE, shape=(7,))
+    config = ACTConfig(input_features={"observation.images.top": image, "observation.images.wrist": image,
+                                       "observation.state": vector},
+                       output_features={"action": PolicyFeature(type=FeatureType.ACTION, shape=(7,))},
+                       device="cpu", chunk_size=4, n_action_steps=4, dim_model=32, n_heads=2, dim_feedforward=64,
+                       n_encoder_layers=1, n_decoder_layers=1, n_vae_encoder_layers=1, latent_dim=8,
+                       pretrained_backbone_weights=None, push_to_hub=False)
+    policy = ACTPolicy(config)
+    stats = {k: {"mean": torch.zeros(7), "std": torch.full((7,), 1e-3)} for k in ("observation.state", "action")}
+    stats |= {f"observation.images.{c}": {"mean": torch.full((3, 1, 1), 0.5), "std": torch.full((3, 1, 1), 0.25)}
+              for c in ("top", "wrist")}
+    pre, post = make_pre_post_processors(config, dataset_stats=stats)
+    for part in (policy, pre, post):
+        part.save_pretrained(path)
+
+
+def test_stage_end_to_end(tmp_path: Path) -> None:
+    for i, name in enumerate(("source", "expanded")):
+        _tiny_act(tmp_path / "models" / name, seed=i)
+    params = _params(trials=1, seed=ORACLE_SEED, max_steps=2, videos=1)
+    paths = dict(report=tmp_path / "policy.json", videos_dir=tmp_path / "videos", table=tmp_path / "rates.csv",
+                 plot=tmp_path / "rates.png")
+    report = run(params, tmp_path / "models", progress=False, **paths)
+    saved = json.loads(paths["report"].read_text())
+    assert saved["seeds"] == [ORACLE_SEED] and set(saved["success_rate"]) == {"source", "expanded"}
+    for name in ("source", "expanded"):
+        trial = saved["policies"][name]["outcomes"][0]
+        assert trial["seed"] == ORACLE_SEED and trial["steps"] <= 2 and trial["success"] is False
+        assert trial["failure"] in ("not_lifted", "non_finite") and Path(trial["video"]).is_file()
+        assert saved["successes"][name] == 0
+    videos = sorted(p.name for p in paths["videos_dir"].iterdir())
+    assert videos == [f"expanded_trial00_seed{ORACLE_SEED}.mp4", f"source_trial00_seed{ORACLE_SEED}.mp4"]
+    assert paths["table"].read_text().splitlines()[0] == "policy,successes,trials,success_rate"
+    assert paths["plot"].stat().st_size > 0 and report["params_hash"] == saved["params_hash"]
+    assert report["timing"]["s_per_step"]["source"] > 0
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temporary left behind
+
+
+def test_missing_policy_and_bad_params_fail_clearly(tmp_path: Path) -> None:
+    with pytest.raises(FileNotFoundError, match="no trained policy 'source'.*finetune"):
+        run(_params(), tmp_path / "nowhere", report=tmp_path / "r.json", progress=False)
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(FileNotFoundError, match="model.safetensors"):
+        policy_dirs(tmp_path, ["empty"])
+    bad = {"policy_eval": {**_params()["policy_eval"], "seed_offset": 7}, "_source": "test"}
+    with pytest.raises(ParamsError, match="seed_offset"):
+        load_section(bad, "policy_eval", PolicyEvalConfig)
+
+
+# --- lerobot's own code path -----------------------------------------------------------------------------------
+
+def test_lerobot_make_env_builds_the_plugin_env(tmp_path: Path) -> None:
+    import lerobot_env_worldcontact  # noqa: F401  registers the env type and the gym id
+    from lerobot.envs.factory import make_env, make_env_config
+    from lerobot.envs.utils import env_to_policy_features, preprocess_observation
+
+    params = _params(max_steps=1)
+    params.pop("_source")
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump(copy.deepcopy(params)))
+    cfg = make_env_config("worldcontact", params=str(tmp_path / "params.yaml"))
+    assert cfg.gym_id == "gym_worldcontact/LiftBag-v0"
+    features = env_to_policy_features(cfg)
+    assert features["observation.images.top"].shape == (3, SIZE, SIZE) and features["observation.state"].shape == (7,)
+    vec = make_env(cfg, n_envs=1)["worldcontact"][0]
+    try:
+        obs, _ = vec.reset(seed=[ORACLE_SEED])
+        batch = preprocess_observation(obs)
+        assert {k: tuple(v.shape) for k, v in batch.items()} == {
+            "observation.images.top": (1, 3, SIZE, SIZE), "observation.images.wrist": (1, 3, SIZE, SIZE),
+            "observation.state": (1, 7)}
+        assert vec.call("task_description") == ("right grasp and lift",) and vec.call("_max_episode_steps") == (1,)
+        _, _, terminated, truncated, info = vec.step(obs["agent_pos"])
+        assert truncated.tolist() == [True] and not terminated.any() and "is_success" in info["final_info"]
+    finally:
+        vec.close()

@@ -1,0 +1,39 @@
+"""Params of the `policy_eval` stage (`policy_eval:` in params.yaml)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+SIMULATE_SEED_BOUND = 2**32  # simulate's episode seeds are SeedSequence uint32 draws: all below this
+
+
+@dataclass(frozen=True)
+class PolicyEvalConfig:
+    task: str  # task program whose initial states are sampled (the policy's task), e.g. lift_handle
+    trials: int  # seeded episodes per policy (paper: 20); the same trial seeds for every policy
+    seed: int  # first trial seed; trial i has seed `seed + i` (lerobot-eval's --seed convention)
+    seed_offset: int  # episode seed = seed_offset + trial seed; >= 2**32 keeps it apart from simulate's
+    lift_height_m: float  # success: the bag's lowest vertex at least this far above the table top ...
+    hold_s: float  # ... at every frame for this long
+    max_steps: int | None  # steps per episode; null: the task program's own length plus the hold
+    device: str  # simulator, renderer and policy: cpu | cuda | cuda:k | auto
+    videos: int  # episodes recorded as mp4 per policy (the first trials)
+
+    def validate(self) -> None:
+        if self.trials < 1:
+            raise ValueError(f"trials must be >= 1, got {self.trials}")
+        if self.seed < 0:
+            raise ValueError(f"seed must be >= 0, got {self.seed}")
+        if self.seed_offset < SIMULATE_SEED_BOUND:
+            raise ValueError(f"seed_offset must be >= 2**32 ({SIMULATE_SEED_BOUND}) so trial episode seeds never "
+                             f"equal a simulate episode seed (uint32), got {self.seed_offset}")
+        if not self.lift_height_m > 0:
+            raise ValueError(f"lift_height_m must be positive, got {self.lift_height_m}")
+        if self.hold_s < 0:
+            raise ValueError(f"hold_s must be >= 0, got {self.hold_s}")
+        if self.max_steps is not None and self.max_steps < 1:
+            raise ValueError(f"max_steps must be >= 1 or null, got {self.max_steps}")
+        if self.videos < 0:
+            raise ValueError(f"videos must be >= 0, got {self.videos}")
+        if self.device != "auto" and self.device != "cpu" and not self.device.startswith("cuda"):
+            raise ValueError(f"device must be cpu, cuda[:k] or auto, got {self.device!r}")

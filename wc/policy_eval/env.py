@@ -1,0 +1,195 @@
+"""`WorldContactLiftEnv`: the policy task ("right grasp and lift") closed-loop in the Newton simulator.
+
+reset(seed): trial seed s -> episode seed `policy_eval.seed_offset + s` (>= 2**32, so never one of the
+simulate stage's uint32 episode seeds); the task's coverage cell, speed and amplitude are drawn from
+it, and its initial state is sampled, settled and planned exactly as the data-generation agent does
+(wc.agent.runner.reset_batch). Frame 0 is the settled state with the robot at the planned start action.
+
+step(action (7,)): right arm q_R (6, rad) + gripper opening d_R (m), the dataset's `action` format. The
+14-D command keeps the left arm where the task program holds it; the kinematic robot moves from the
+current command to the new one over one frame (`sim.substeps` solver steps), then both cameras render
+the new state with the render stage's renderer. Observations: pixels.top / pixels.wrist (H, W, 3) uint8
+and agent_pos (7,) float32 = the commanded right arm (the dataset's observation.state).
+
+Success (info["is_success"], reward 1, terminated): the bag's lowest vertex >= lift_height_m above the
+table top at every frame for hold_s. Also terminated: a non-finite action or physics state; truncated:
+max_steps (null: the planned task program's length plus the hold).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+from wc.agent.runner import build_task_world, reset_batch
+from wc.config import ParamsError, load_section, read_params
+from wc.dynamics import ObjectState
+from wc.policy.dataset import RIGHT_ARM, fps_of
+from wc.policy.policy_config import PolicyConfig
+from wc.policy_eval.config import PolicyEvalConfig
+from wc.policy_eval.stepper import FrameStepper
+from wc.policy_eval.success import LiftHoldMonitor, hold_frames
+from wc.render.config import RenderConfig
+from wc.render.geometry import scene_geometry
+from wc.render.renderer import EpisodeRenderer
+from wc.render.rig import render_cameras
+from wc.scene.config import SceneConfig
+from wc.sim.config import SimConfig
+from wc.sim.newton_sim import resolve_device
+from wc.tasks.bag_geometry import lowest_height
+from wc.tasks.base import EpisodeSpec, Task, get_task
+
+MAX_PLANS = 8  # draws of (cell, speed, amplitude) per reset before an unplannable initial state is an error
+
+
+def sample_spec(task: Task, episode_seed: int, attempt: int = 0) -> EpisodeSpec:
+    """The episode's coverage cell, speed and amplitude, uniform over the task's cells and ranges."""
+    rng = np.random.default_rng([episode_seed, attempt])
+    cell = int(rng.integers(task.num_cells()))
+    speed, amplitude = (float(rng.uniform(*r)) for r in (task.speed_range(), task.amplitude_range()))
+    return EpisodeSpec(task.name, episode_seed, cell, speed, amplitude)
+
+
+class WorldContactLiftEnv(gym.Env):
+    """The lift task closed-loop (see the module docstring). `params`: a params dict or YAML path
+    (sections policy_eval, policy, scene, sim, render, tasks); `overrides`: `key.sub=value` strings."""
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 25}
+
+    def __init__(self, params: dict[str, Any] | str | Path = "params.yaml", overrides: list[str] | None = None,
+                 render_mode: str | None = "rgb_array") -> None:
+        if not isinstance(params, dict):
+            params = read_params(params, overrides)
+        elif overrides:
+            raise ValueError("overrides apply to a params file; edit the params dict instead")
+        self.cfg = load_section(params, "policy_eval", PolicyEvalConfig)
+        self.device = resolve_device(self.cfg.device)
+        sim_cfg = dataclasses.replace(load_section(params, "sim", SimConfig), worlds=1, device=self.device)
+        scene_cfg = load_section(params, "scene", SceneConfig)
+        render_cfg = load_section(params, "render", RenderConfig)
+        self.instruction = load_section(params, "policy", PolicyConfig).task
+        self.task = get_task(self.cfg.task, params)
+        self.world = build_task_world(scene_cfg, sim_cfg, self.task)
+        if self.world.free_sim is not None:
+            raise ParamsError(f"policy_eval.task {self.cfg.task!r} hands objects off between simulators; "
+                              "closed-loop evaluation supports tasks simulated in one")
+        self.scene = self.world.scene
+        self.stepper = FrameStepper(self.world.sim)
+        self.frame_dt_s = sim_cfg.frame_dt_s
+        self.hold = hold_frames(self.cfg.hold_s, self.frame_dt_s)
+        try:
+            cameras = render_cameras(scene_cfg.cameras, render_cfg.cameras, render_cfg.width, render_cfg.height)
+        except ValueError as err:
+            raise ParamsError(f"{params.get('_source', '<params>')}: {err}") from err
+        self.renderer = EpisodeRenderer(scene_geometry(self.scene), cameras, self.device, 1, render_cfg.shadows)
+        self.cameras = list(cameras)
+        self.metadata = {**self.metadata, "render_fps": fps_of(self.frame_dt_s)}
+        self.render_mode = render_mode
+        image = gym.spaces.Box(0, 255, (render_cfg.height, render_cfg.width, 3), np.uint8)
+        self.observation_space = gym.spaces.Dict({
+            "pixels": gym.spaces.Dict({name: image for name in self.cameras}),
+            "agent_pos": gym.spaces.Box(-np.inf, np.inf, (7,), np.float32)})
+        self.action_space = gym.spaces.Box(-np.inf, np.inf, (7,), np.float32)
+        self._max_episode_steps = self.cfg.max_steps or 0  # read by lerobot's rollout after reset
+        self.seconds = {"reset": 0.0, "physics": 0.0, "render": 0.0}
+        self._trial_seed: int | None = None
+        self._resets: dict[int, tuple[EpisodeSpec, ObjectState, np.ndarray]] = {}  # trial seed -> planned reset:
+        # every policy starts a trial from the very same settled state, and pays for settling it once
+        self._obs: dict[str, Any] | None = None
+        self._done = True
+
+    # lerobot's rollout asks the sub-environments for these
+    @property
+    def task_description(self) -> str:
+        return self.instruction
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None
+              ) -> tuple[dict[str, Any], dict[str, Any]]:
+        super().reset(seed=seed)
+        if seed is None:  # no seed: the trial after the previous one
+            seed = 0 if self._trial_seed is None else self._trial_seed + 1
+        if seed < 0:
+            raise ValueError(f"trial seed must be >= 0, got {seed}")
+        tic = time.perf_counter()
+        self._trial_seed = int(seed)
+        self.episode_seed = self.cfg.seed_offset + self._trial_seed
+        if self._trial_seed not in self._resets:
+            self._resets[self._trial_seed] = self._plan(self.episode_seed)
+        self.episode_spec, state, self.planned_actions = self._resets[self._trial_seed]
+        self.stepper.start(state, self.planned_actions[0])
+        self._left = self.planned_actions[0, :RIGHT_ARM.start].copy()
+        self._max_episode_steps = self.cfg.max_steps or (len(self.planned_actions) - 1 + self.hold)
+        self.monitor = LiftHoldMonitor(self.cfg.lift_height_m, self.hold)
+        self.steps, self.failure, self._done = 0, None, False
+        self.seconds["reset"] += time.perf_counter() - tic
+        height = self._lowest_height(state.x)
+        success = self.monitor.update(height)  # frame 0 counts: the bag rests on the table there
+        self.x = state.x  # (N, 3) object vertices of the current frame [m]
+        self._obs = self._observe(state.x, self.planned_actions[0])
+        return self._obs, self._info(success, height)
+
+    def step(self, action: np.ndarray) -> tuple[dict[str, Any], float, bool, bool, dict[str, Any]]:
+        if self._done:
+            raise RuntimeError("step() after the episode ended: call reset() first")
+        action = np.asarray(action, np.float32)
+        if action.shape not in ((7,), (1, 7)):
+            raise ValueError(f"action must be (7,): right arm q_R (6, rad) + gripper opening (m), got {action.shape}")
+        command = np.concatenate([self._left, action.reshape(7)])
+        self.steps += 1
+        success, height = False, float("nan")
+        if not np.isfinite(command).all():
+            self.failure = "non_finite_action"
+        else:
+            tic = time.perf_counter()
+            x, v = self.stepper.advance(command)
+            self.seconds["physics"] += time.perf_counter() - tic
+            if not (np.isfinite(x).all() and np.isfinite(v).all()):
+                self.failure = "non_finite"
+            else:
+                self.x = x
+                height = self._lowest_height(x)
+                success = self.monitor.update(height)
+                self._obs = self._observe(x, command)
+        terminated = success or self.failure is not None
+        truncated = not terminated and self.steps >= self._max_episode_steps
+        if truncated:
+            self.failure = self.monitor.failure()
+        self._done = terminated or truncated
+        return self._obs, float(success), terminated, truncated, self._info(success, height)
+
+    def _plan(self, episode_seed: int) -> tuple[EpisodeSpec, ObjectState, np.ndarray]:
+        """Sample, settle and plan an episode as the agent does: (spec, frame-0 state, planned actions (T, 14),
+        the task's own program, i.e. the oracle); another draw of the spec if one cannot be planned."""
+        for attempt in range(MAX_PLANS):
+            spec = sample_spec(self.task, episode_seed, attempt)
+            runnable, _ = reset_batch(self.world, [spec])
+            if runnable:
+                return runnable[0]
+        raise RuntimeError(f"{self.task.name}: no plannable episode for episode seed {episode_seed} "
+                           f"in {MAX_PLANS} draws")
+
+    def render(self) -> np.ndarray:
+        """The current views side by side, (H, W * cameras, 3) uint8."""
+        if self._obs is None:
+            raise RuntimeError("render() before reset()")
+        return np.concatenate([self._obs["pixels"][n] for n in self.cameras], axis=1)
+
+    def _lowest_height(self, x: np.ndarray) -> float:
+        return float(lowest_height(self.scene, x[None])[0])
+
+    def _observe(self, x: np.ndarray, command: np.ndarray) -> dict[str, Any]:
+        tic = time.perf_counter()
+        frames = self.renderer.render(x[None], self.scene.link_poses(command)[None], "policy_eval")
+        self.seconds["render"] += time.perf_counter() - tic
+        return {"pixels": {n: frames[n][0] for n in self.cameras},
+                "agent_pos": np.asarray(command[RIGHT_ARM], np.float32)}
+
+    def _info(self, success: bool, height: float) -> dict[str, Any]:
+        return {"is_success": bool(success), "lowest_height_m": height, "max_lift_m": self.monitor.max_height_m,
+                "steps": self.steps, "failure": self.failure or "", "trial_seed": self._trial_seed,
+                "episode_seed": self.episode_seed}

@@ -1,0 +1,48 @@
+"""The lift success predicate: the bag's lowest vertex stays `lift_height_m` above the table top for
+`hold_s` without a break (a streak of lifted frames spanning hold_s)."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+
+import numpy as np
+
+
+def hold_frames(hold_s: float, frame_dt_s: float) -> int:
+    """Frame intervals a lift must last: ceil(hold_s / dt) (0 = lifted once is enough)."""
+    return max(0, math.ceil(hold_s / frame_dt_s - 1e-9))
+
+
+class LiftHoldMonitor:
+    """Fed the lowest bag height above the table [m] once per frame; `update` returns True from the frame at
+    which the bag has been lifted continuously for `hold` frame intervals."""
+
+    def __init__(self, lift_height_m: float, hold: int) -> None:
+        self.lift_height_m, self.hold = lift_height_m, hold
+        self.streak = 0  # consecutive lifted frames, this one included
+        self.max_height_m = -math.inf
+        self.ever_lifted = False
+
+    def update(self, height_m: float) -> bool:
+        if not math.isfinite(height_m):
+            raise ValueError(f"lowest bag height is not finite ({height_m})")
+        self.max_height_m = max(self.max_height_m, height_m)
+        lifted = height_m >= self.lift_height_m
+        self.streak = self.streak + 1 if lifted else 0
+        self.ever_lifted |= lifted
+        return self.streak > self.hold  # streak of n frames spans n - 1 intervals
+
+    def failure(self) -> str:
+        """Why an episode that ended without success failed: not_lifted (never lifted), dropped (lifted, then
+        fell back below the height) or not_held (still lifted, for too short a time)."""
+        return "not_lifted" if not self.ever_lifted else "not_held" if self.streak else "dropped"
+
+
+def first_success(heights_m: Iterable[float], lift_height_m: float, hold: int) -> int | None:
+    """Index of the first frame at which the heights sequence (m, one per frame) satisfies the predicate."""
+    monitor = LiftHoldMonitor(lift_height_m, hold)
+    for k, h in enumerate(np.asarray(list(heights_m), np.float64)):
+        if monitor.update(float(h)):
+            return k
+    return None
