@@ -185,6 +185,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--steps", type=int, default=5)
     parser.add_argument("--rollout-frames", type=int, default=25)
     parser.add_argument("--batch", type=int, default=8)
+    parser.add_argument("--episode", default=None,
+                        help="keep the simulated episode's store here (e.g. for benchmarks.rollout_profile)")
     parser.add_argument("--out", required=True)
     args = parser.parse_args(argv)
     params = read_params(args.params, args.overrides)
@@ -194,8 +196,9 @@ def main(argv: list[str] | None = None) -> None:
     report: dict[str, Any] = {"params": args.params, "environment": environment_info(str(device)), "training": [],
                               "rollout": []}
     with tempfile.TemporaryDirectory() as tmp:
-        report["simulator"] = simulate_episode(params, Path(tmp) / "episode.zarr")
-        store = TrajectoryStore(Path(tmp) / "episode.zarr")
+        episode = Path(args.episode) if args.episode else Path(tmp) / "episode.zarr"
+        report["simulator"] = simulate_episode(params, episode)
+        store = TrajectoryStore(episode)
         print(f"simulator: {report['simulator']['simulated_s_per_wall_s']:.3f} s/s", flush=True)
         for compress in (True, False):
             mc = replace(model_cfg, compress=compress)

@@ -28,6 +28,28 @@ def test_shipped_params_load(file):
         get_task(name, params)
 
 
+@pytest.mark.parametrize("file", ["params.yaml", "params/gpu.yaml"])
+def test_every_stage_section_of_the_shipped_params_validates(file):
+    """Each file carries every stage's section, so any stage runs with `--params FILE`."""
+    from wc.agent.runner import AgentConfig
+    from wc.baselines.config import BaselinesConfig
+    from wc.eval.config import EvaluateConfig
+    from wc.expand.config import ExpandConfig
+    from wc.model.config import ModelConfig
+    from wc.policy.dataset_config import DatasetConfig
+    from wc.policy.policy_config import PolicyConfig
+    from wc.policy_eval.config import PolicyEvalConfig
+    from wc.render.config import RenderConfig
+    from wc.train.config import TrainConfig
+    from wc.validate.config import ValidateConfig
+    params = read_params(ROOT / file)
+    for name, config in {"agent": AgentConfig, "validate": ValidateConfig, "model": ModelConfig,
+                         "train": TrainConfig, "baselines": BaselinesConfig, "evaluate": EvaluateConfig,
+                         "expand": ExpandConfig, "render": RenderConfig, "dataset": DatasetConfig,
+                         "policy": PolicyConfig, "policy_eval": PolicyEvalConfig}.items():
+        assert isinstance(load_section(params, name, config), config), name
+
+
 def test_unknown_key_is_named(tmp_path):
     data = read_params(ROOT / "params.yaml")
     data["sim"]["iteratons"] = 3
