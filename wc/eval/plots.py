@@ -1,4 +1,5 @@
-"""Stability figure: per-step median (and interquartile band) over long rollouts, one line per method."""
+"""Evaluation figures: long-rollout stability (per-step median and interquartile band, one line per method) and
+speed against accuracy (one point per method)."""
 
 from __future__ import annotations
 
@@ -59,4 +60,30 @@ def plot_stability(curves: Sequence[StabilityCurve], path: str | Path, dt: float
     axes[1].legend(handles=handles, fontsize=8)
     fig.suptitle(f"Long rollouts: per-step median over the {len(curves) // max(1, len(methods))} rollouts per "
                  "method that reach the step (band: 25-75 %)")
+    return save_figure_atomic(fig, path)
+
+
+SPEED_ACCURACY_HEADER = ["method", "simulated_s_per_wall_s", "position_mse_m2", "penetration_rate_pct"]
+
+
+def speed_accuracy_rows(methods: dict[str, dict[str, float]], dt: float) -> list[list[object]]:
+    """One row per method: speed (simulated seconds per wall second, dt / s_per_step) and its held-out errors."""
+    return [[name, dt / m["s_per_step"] if m["s_per_step"] > 0 else float("inf"), m["position_mse_m2"],
+             m["penetration_rate_pct"]] for name, m in methods.items()]
+
+
+def plot_speed_accuracy(rows: list[list[object]], path: str | Path) -> Path:
+    """Speed against accuracy, one labelled point per method (log-log), to `path` (PNG)."""
+    plt = pyplot()
+    fig, ax = plt.subplots(figsize=(6.4, 4.6), constrained_layout=True)
+    for i, (name, speed, mse, _) in enumerate(rows):
+        if np.isfinite(speed) and mse > 0:
+            ax.scatter(speed, mse, color=f"C{i}", s=40)
+            ax.annotate(str(name), (speed, mse), textcoords="offset points", xytext=(5, 4), fontsize=8)
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("speed [simulated s per wall s] (higher is faster)")
+    ax.set_ylabel("held-out position MSE [m²] (lower is better)")
+    ax.grid(alpha=0.3, which="both")
+    ax.set_title("Speed against accuracy on the held-out rollouts", fontsize=10)
     return save_figure_atomic(fig, path)

@@ -29,7 +29,7 @@ from wc.eval.cases import Case, CaseReader, held_out_phases, long_phases
 from wc.eval.config import EvaluateConfig
 from wc.eval.metrics import ErrorTally, finite_or_none, squared_error
 from wc.eval.penetration import PenetrationTally, cloth_signed_distance, penetrating_area_pct
-from wc.eval.plots import plot_stability
+from wc.eval.plots import SPEED_ACCURACY_HEADER, plot_speed_accuracy, plot_stability, speed_accuracy_rows
 from wc.eval.predictors import Predictor, WorldContactPredictor, load_predictor
 from wc.eval.stability import (CSV_HEADER, StabilityCurve, csv_rows, divergence_summary, first_divergence,
                               max_edge_strain)
@@ -179,7 +179,8 @@ def stability_curves(reader: CaseReader, phases: list[Phase], predictors: dict[s
 def evaluate(params: dict[str, Any], store_path: str | Path = "data/source/trajectories.zarr",
              metrics: str | Path = "reports/metrics.json", stability_csv: str | Path = "reports/stability.csv",
              stability_png: str | Path = "reports/stability.png") -> dict[str, Any]:
-    """Run the held-out and long rollouts of every method; write the three reports; return the metrics dict."""
+    """Run the held-out and long rollouts of every method; write the metrics, the stability curves and the
+    speed-accuracy chart (speed_accuracy.{csv,png} beside `metrics`); return the metrics dict."""
     cfg = load_section(params, "evaluate", EvaluateConfig)
     scene_cfg = load_section(params, "scene", SceneConfig)
     model_cfg = load_section(params, "model", ModelConfig)
@@ -205,6 +206,9 @@ def evaluate(params: dict[str, Any], store_path: str | Path = "data/source/traje
     plot_stability(curves, stability_png, dt, cfg.divergence_strain, cfg.divergence_penetration_pct)
     summaries = {m: s.summary() for m, s in scores.items()}
     ground_truth = summaries.pop(GROUND_TRUTH)
+    speed_rows = speed_accuracy_rows(summaries, dt)  # beside the metrics: speed_accuracy.{csv,png}
+    write_csv_atomic(Path(metrics).with_name("speed_accuracy.csv"), SPEED_ACCURACY_HEADER, speed_rows)
+    plot_speed_accuracy(speed_rows, Path(metrics).with_name("speed_accuracy.png"))
     stability = divergence_summary(curves)
     result = {
         "methods": summaries,
