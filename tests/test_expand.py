@@ -43,7 +43,8 @@ def params() -> dict[str, Any]:
     p["validate"] = copy.deepcopy(LOOSE)
     p["tasks"][TASK].update(speed_range_m_s=[0.4, 0.5], amplitude_range_m=[0.02, 0.03], hold_s=0.0)  # ~20 frames
     p["tasks"]["common"].update(close_s=0.08)
-    p["expand"].update(target_trajectories=4, max_attempts=6, batch_size=2, task_check=False, device="cpu", seed=3)
+    p["expand"].update(task=TASK, target_trajectories=4, max_attempts=6, batch_size=2, task_check=False, device="cpu",
+                       seed=3)
     return p
 
 
