@@ -136,6 +136,12 @@ def test_mse_of_identical_rollouts_is_zero_and_known_offsets_pool_by_vertex_fram
         tally.add("a", np.zeros((5, 1, 3)), np.zeros((5, 1, 3)), np.zeros((5, 1, 3)), np.zeros((5, 1, 3)))
 
 
+def test_pareto_front_keeps_the_undominated_points():
+    from wc.eval.plots import pareto_front
+    points = [(10.0, 5.0), (1.0, 1.0), (5.0, 6.0), (100.0, 8.0), (1.0, 2.0)]
+    assert pareto_front(points) == [3, 0, 1]  # fastest first; (5, 6) and (1, 2) are dominated
+
+
 def test_reference_predictors():
     x0 = torch.randn(2, 6, 3)
     v0 = torch.randn(2, 6, 3)

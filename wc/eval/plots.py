@@ -72,14 +72,30 @@ def speed_accuracy_rows(methods: dict[str, dict[str, float]], dt: float) -> list
              m["penetration_rate_pct"]] for name, m in methods.items()]
 
 
+def pareto_front(points: Sequence[tuple[float, float]]) -> list[int]:
+    """Indices of the (speed, error) points no other point beats on both, fastest first."""
+    order = sorted(range(len(points)), key=lambda i: (-points[i][0], points[i][1]))
+    front, best = [], float("inf")
+    for i in order:
+        if points[i][1] < best:
+            front.append(i)
+            best = points[i][1]
+    return front
+
+
 def plot_speed_accuracy(rows: list[list[object]], path: str | Path) -> Path:
-    """Speed against accuracy, one labelled point per method (log-log), to `path` (PNG)."""
+    """Speed against accuracy, one labelled point per method (log-log) and the Pareto front, to `path` (PNG)."""
     plt = pyplot()
     fig, ax = plt.subplots(figsize=(6.4, 4.6), constrained_layout=True)
-    for i, (name, speed, mse, _) in enumerate(rows):
-        if np.isfinite(speed) and mse > 0:
-            ax.scatter(speed, mse, color=f"C{i}", s=40)
-            ax.annotate(str(name), (speed, mse), textcoords="offset points", xytext=(5, 4), fontsize=8)
+    shown = [(str(r[0]), float(r[1]), float(r[2])) for r in rows if np.isfinite(float(r[1])) and float(r[2]) > 0]
+    for i, (name, speed, mse) in enumerate(shown):
+        ax.scatter(speed, mse, color=f"C{i}", s=40)
+        ax.annotate(name, (speed, mse), textcoords="offset points", xytext=(5, 4), fontsize=8)
+    front = [shown[i] for i in pareto_front([(s, e) for _, s, e in shown])]
+    if len(front) > 1:
+        ax.step([s for _, s, _ in front], [e for _, _, e in front], where="post", color="k", linestyle="--",
+                linewidth=0.8, label="Pareto front")
+        ax.legend(fontsize=8)
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.set_xlabel("speed [simulated s per wall s] (higher is faster)")
