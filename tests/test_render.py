@@ -69,6 +69,11 @@ def test_stage_writes_frames_report_and_sheet(params: dict, store: Path, tmp_pat
     only["render"]["tasks"] = ["no_such_task"]
     with pytest.raises(ValueError, match="no episode to render"):
         render(only, [(store, tmp_path / "none.zarr")], report, sheet)
+    # an expansion that accepted nothing: an empty store renders to an empty frames store, not an error
+    empty = write_synthetic_store(tmp_path / "empty.zarr", params, [], frames=6)
+    result = render(only | {"render": params["render"]}, [(store, tmp_path / "again.zarr"),
+                                                          (empty, tmp_path / "empty_frames.zarr")], report, sheet)
+    assert result["outputs"][1]["episodes"] == 0 and RenderedStore(tmp_path / "empty_frames.zarr").episode_ids() == []
 
 
 def test_bag_is_drawn_where_it_projects(params: dict, store: Path) -> None:

@@ -39,12 +39,13 @@ def default_pairs() -> list[tuple[str, str]]:
 
 
 def select_episodes(store: TrajectoryStore, tasks: Sequence[str] | None) -> list[str]:
-    """Episode ids of the store to render: all, or those of the given tasks (error if none match)."""
+    """Episode ids of the store to render: all, or those of the given tasks (error if none match; an empty
+    store, e.g. an expansion that accepted nothing, renders to an empty frames store)."""
     if tasks is None:
         ids = store.episode_ids
     else:
         ids = [e for e in store.episode_ids if store.episode_attrs(e)["task"] in tasks]
-    if not ids:
+    if not ids and store.episode_ids:
         present = sorted({store.episode_attrs(e)["task"] for e in store.episode_ids})
         raise ValueError(f"{store.path}: no episode to render (render.tasks {list(tasks or [])}; "
                          f"tasks in the store: {present})")
@@ -126,8 +127,8 @@ def render(params: dict[str, Any], pairs: Sequence[tuple[str | Path, str | Path]
         "width": cfg.width,
         "height": cfg.height,
         "device": device,
-        "ms_per_frame": {n: 1000.0 * s / frames for n, s in renderers.seconds().items()},
-        "ms_per_frame_all_cameras_wall": 1000.0 * wall / frames,
+        "ms_per_frame": {n: 1000.0 * s / frames if frames else None for n, s in renderers.seconds().items()},
+        "ms_per_frame_all_cameras_wall": 1000.0 * wall / frames if frames else None,
         "renderers_built": len(renderers.by_layout),
         "contact_sheet": str(sheet),
         "params_hash": phash,
