@@ -25,7 +25,7 @@ from wc.data.store import TrajectoryStore
 from wc.model.layout import SceneLayout, scene_layout
 from wc.train.config import TrainConfig
 from wc.train.data import LayoutBatchSampler, LayoutKey, Phase, Window, WindowDataset, read_phase_window
-from wc.train.evaluation import load_window
+from wc.train.evaluation import load_window, phase_rollout_errors
 from wc.train.loop import prepare_data
 
 TAG_SCALE = 1.0  # the baselines do not read the layout's tag attribute
@@ -49,24 +49,11 @@ def validation_loss(model: ParticleDynamics, store: TrajectoryStore, windows: li
     return total / max(1, len(windows))
 
 
-@torch.no_grad()
 def rollout_error(model: ParticleDynamics, store: TrajectoryStore, phases: list[Phase], frames: int, layout_for,
                   device: torch.device) -> dict[str, float]:  # noqa: ANN001
-    """Vertex position MSE (m², mean over vertices and frames of ‖x̂ − x‖²) of rollouts from each phase's first frame,
-    and of zero motion; history before the first frame padded as in `rollout`."""
-    errors, zero = [], []
-    for p in phases:
-        length = min(frames + 1, p.stop - p.start)
-        if length < 2:
-            continue
-        batch = load_window(store, Window(p, p.start), length, device)
-        x = batch["x"]
-        xp, _ = model.rollout(layout_for(p.layout), x[:, 0], batch["v"][:, 0], batch["poses"], store.dt)
-        errors.append(float((xp - x[:, 1:]).square().sum(-1).mean()))
-        zero.append(float((x[:, :1] - x[:, 1:]).square().sum(-1).mean()))
-    if not errors:
-        return {"rollout_position_mse_m2": float("nan"), "rollout_zero_motion_mse_m2": float("nan")}
-    return {"rollout_position_mse_m2": float(np.mean(errors)), "rollout_zero_motion_mse_m2": float(np.mean(zero))}
+    """`phase_rollout_errors` of the baseline's rollouts (history before the first frame padded as in `rollout`)."""
+    return phase_rollout_errors(store, phases, frames, device, lambda p, batch: model.rollout(
+        layout_for(p.layout), batch["x"][:, 0], batch["v"][:, 0], batch["poses"], store.dt)[0])
 
 
 def train_baseline(name: str, store_path: str | Path, out_dir: str | Path, cfg: BaselinesConfig,

@@ -25,6 +25,7 @@ from tqdm import tqdm
 
 from wc.config import ParamsError, load_section, params_hash
 from wc.data.store import TrajectoryStore
+from wc.devices import resolve_device
 from wc.eval.cases import Case, CaseReader, held_out_phases, long_phases
 from wc.eval.config import EvaluateConfig
 from wc.eval.metrics import ErrorTally, finite_or_none, squared_error
@@ -41,15 +42,6 @@ from wc.train.data import Phase
 
 SECTIONS = ["evaluate", "scene", "model", "train"]
 GROUND_TRUTH = "ground_truth"
-
-
-def resolve_device(name: str) -> torch.device:
-    """torch device of params `evaluate.device` (auto: CUDA when present)."""
-    if name == "auto":
-        name = "cuda" if torch.cuda.is_available() else "cpu"
-    if name.startswith("cuda") and not torch.cuda.is_available():
-        raise RuntimeError(f"evaluate.device is {name!r} but CUDA is not available")
-    return torch.device(name)
 
 
 def load_methods(cfg: EvaluateConfig, train_cfg: TrainConfig, tag_scale: float, device: torch.device
@@ -189,7 +181,7 @@ def evaluate(params: dict[str, Any], store_path: str | Path = "data/source/traje
         raise FileNotFoundError(f"evaluate: trajectory store not found: {store_path} (run the validate stage first)")
     started = time.perf_counter()
     torch.manual_seed(cfg.seed)
-    device = resolve_device(cfg.device)
+    device = resolve_device(cfg.device, "evaluate.device")
     store = TrajectoryStore(store_path)
     dt = float(store.dt)
     predictors, skipped = load_methods(cfg, train_cfg, model_cfg.tag_scale, device)

@@ -25,6 +25,7 @@ from wc.agent.planner import CoveragePlanner
 from wc.agent.runner import episode_seed
 from wc.config import load_section, params_hash
 from wc.data.store import TrajectoryStore, TrajectoryWriter
+from wc.devices import resolve_device
 from wc.eval.predictors import CHECKPOINT, WorldContactPredictor
 from wc.expand.config import ExpandConfig
 from wc.expand.plan import PlannedEpisode, SourceEpisode, plan_episode, source_episodes
@@ -41,15 +42,6 @@ from wc.validate.stage import EpisodeScenes
 
 SECTIONS = ["expand", "scene", "tasks", "validate", "train"]
 UNREACHABLE = "unreachable"  # the planner's name for an episode that could not be planned (as in simulate)
-
-
-def resolve_device(name: str) -> torch.device:
-    """torch device of params `expand.device` (auto: CUDA when present)."""
-    if name == "auto":
-        name = "cuda" if torch.cuda.is_available() else "cpu"
-    if name.startswith("cuda") and not torch.cuda.is_available():
-        raise RuntimeError(f"expand.device is {name!r} but CUDA is not available")
-    return torch.device(name)
 
 
 def verdict(task: Task, scene: Scene, task_check: bool, planned: PlannedEpisode, r: Rollout,
@@ -104,7 +96,7 @@ def expand(params: dict[str, Any], model_dir: str | Path = "models/worldcontact"
     task = get_task(cfg.task, params)
     src = TrajectoryStore(store)
     sources, scene = source_episodes(src, task, EpisodeScenes(scene_cfg, src))
-    device = resolve_device(cfg.device)
+    device = resolve_device(cfg.device, "expand.device")
     torch.manual_seed(cfg.seed)
     predictor = WorldContactPredictor.from_dir(model_dir, train_cfg, device)
     layout = scene_layout(src, list(scene.objects), list(scene.link_names), predictor.tag_scale).to(device)

@@ -57,24 +57,39 @@ def validation_losses(model: WorldContact, store: TrajectoryStore, windows: list
     return {"val_loss": model_sum / n, "zero_motion_loss": zero_sum / n, "constant_velocity_loss": const_sum / n}
 
 
+RolloutPredictor = Callable[[Phase, dict[str, torch.Tensor]], torch.Tensor]  # (phase, batch) -> x̂ (1, T-1, N, 3)
+
+
 @torch.no_grad()
-def rollout_error(model: WorldContact, store: TrajectoryStore, phases: list[Phase], frames: int,
-                  layout_for: LayoutFor, projector: Projector, dt: float, device: torch.device) -> dict[str, float]:
-    """Position MSE (m², mean over vertices and frames of ‖x̂ − x‖²) of autoregressive rollouts from each phase's first frame."""
-    was_training = model.training
-    model.eval()
+def phase_rollout_errors(store: TrajectoryStore, phases: list[Phase], frames: int, device: torch.device,
+                         predict: RolloutPredictor) -> dict[str, float]:
+    """Position MSE (m², mean over vertices and frames of ‖x̂ − x‖²) of `predict`'s rollouts from each phase's
+    first frame over up to `frames` steps, and of zero motion on the same frames."""
     errors, zero = [], []
     for p in phases:
         length = min(frames + 1, p.stop - p.start)
         if length < 2:
             continue
         batch = load_window(store, Window(p, p.start), length, device)
-        layout = layout_for(p.layout)
         x = batch["x"]
-        xp, _ = rollout(model, layout, x[:, 0], batch["v"][:, 0], batch["poses"], dt, projector(layout))
-        errors.append(float((xp - x[:, 1:]).square().sum(-1).mean()))
+        errors.append(float((predict(p, batch) - x[:, 1:]).square().sum(-1).mean()))
         zero.append(float((x[:, :1] - x[:, 1:]).square().sum(-1).mean()))
-    model.train(was_training)
     if not errors:
         return {"rollout_position_mse_m2": float("nan"), "rollout_zero_motion_mse_m2": float("nan")}
     return {"rollout_position_mse_m2": float(np.mean(errors)), "rollout_zero_motion_mse_m2": float(np.mean(zero))}
+
+
+@torch.no_grad()
+def rollout_error(model: WorldContact, store: TrajectoryStore, phases: list[Phase], frames: int,
+                  layout_for: LayoutFor, projector: Projector, dt: float, device: torch.device) -> dict[str, float]:
+    """`phase_rollout_errors` of WorldContact's autoregressive rollouts (eval mode, the stage's projection)."""
+    def predict(p: Phase, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        layout = layout_for(p.layout)
+        return rollout(model, layout, batch["x"][:, 0], batch["v"][:, 0], batch["poses"], dt, projector(layout))[0]
+
+    was_training = model.training
+    model.eval()
+    try:
+        return phase_rollout_errors(store, phases, frames, device, predict)
+    finally:
+        model.train(was_training)
