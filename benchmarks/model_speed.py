@@ -88,15 +88,16 @@ def simulate_episode(params: dict[str, Any], path: Path, seed: int = 0) -> dict[
             "simulated_s_per_wall_s": frames * sim_cfg.frame_dt_s / wall, "finite": bool(np.isfinite(x).all())}
 
 
-def _sync(device: torch.device) -> None:
+def sync(device: torch.device) -> None:
+    """Wait for the device (CUDA) before a clock read; no-op on CPU."""
     if device.type == "cuda":
         torch.cuda.synchronize(device)
 
 
-def _episode_model(store: TrajectoryStore, model_cfg: ModelConfig,
-                   device: torch.device) -> tuple[Phase, WorldContact, SceneLayout]:
-    """The benchmark episode's (single) phase, a model scaled to it, and its layout, on `device`."""
-    phase = episode_phases(store, store.episode_ids[0])[0]
+def episode_model(store: TrajectoryStore, model_cfg: ModelConfig, device: torch.device,
+                  episode: str | None = None) -> tuple[Phase, WorldContact, SceneLayout]:
+    """The benchmark episode's (default: the first) first phase, a model scaled to it, and its layout, on `device`."""
+    phase = episode_phases(store, episode or store.episode_ids[0])[0]
     scales = data_scales(store, [phase], 1)
     model = WorldContact(model_cfg, scales.velocity_m_s, scales.delta_x_m, scales.delta_v_m_s).to(device)
     return phase, model, scene_layout(store, list(phase.layout[0]), list(phase.layout[1]), model_cfg.tag_scale).to(device)
@@ -105,7 +106,7 @@ def _episode_model(store: TrajectoryStore, model_cfg: ModelConfig,
 def time_training(store: TrajectoryStore, model_cfg: ModelConfig, cfg: TrainConfig, window: int, steps: int,
                   device: torch.device) -> dict[str, Any]:
     """Median seconds per optimisation step on W-frame windows of the stored episode."""
-    phase, model, layout = _episode_model(store, model_cfg, device)
+    phase, model, layout = episode_model(store, model_cfg, device)
     model.train()
     optimizer = torch.optim.AdamW(model.parameters(), lr=1e-5, betas=cfg.betas, weight_decay=cfg.weight_decay)
     runner = SegmentRollout(model)
@@ -115,7 +116,7 @@ def time_training(store: TrajectoryStore, model_cfg: ModelConfig, cfg: TrainConf
     walls, losses = [], []
     for k, s in enumerate(starts):
         a = {n: torch.from_numpy(arr)[None].to(device) for n, arr in read_phase_window(store, phase, s, window).items()}
-        _sync(device)
+        sync(device)
         t = time.perf_counter()
         losses.append(optimisation_step(runner, optimizer, layout, a["x"], a["v"], a["poses"], store.dt, None, cfg))
         if k >= 2:  # the first two steps compile / allocate
@@ -129,7 +130,7 @@ def time_training(store: TrajectoryStore, model_cfg: ModelConfig, cfg: TrainConf
 def time_rollout(store: TrajectoryStore, model_cfg: ModelConfig, frames: int, batch: int, autocast: bool,
                  device: torch.device) -> dict[str, Any]:
     """Simulated seconds per wall second of a `frames`-frame rollout of `batch` copies of the episode."""
-    phase, model, layout = _episode_model(store, model_cfg, device)
+    phase, model, layout = episode_model(store, model_cfg, device)
     model.eval()
     frames = min(frames, phase.stop - 1)
     a = {n: torch.from_numpy(arr).to(device) for n, arr in read_phase_window(store, phase, 0, frames + 1).items()}
@@ -138,11 +139,11 @@ def time_rollout(store: TrajectoryStore, model_cfg: ModelConfig, frames: int, ba
     poses = a["poses"][None].expand(batch, -1, -1, -1).contiguous()
     walls = []
     for k in range(3):
-        _sync(device)
+        sync(device)
         t = time.perf_counter()
         with torch.autocast("cuda", dtype=torch.bfloat16, enabled=autocast and device.type == "cuda"):
             xs, _ = rollout(model, layout, x0, v0, poses, store.dt)
-        _sync(device)
+        sync(device)
         if k:
             walls.append(time.perf_counter() - t)
     wall = statistics.median(walls)

@@ -3,8 +3,8 @@
     python -m benchmarks.rollout_profile --params params/gpu.yaml --store STORE [--frames 10] [--batch 1]
         --out reports/rollout_profile_<tag>.json   (+ .md)
 
-Parts: prescribed samples (`boundary_samples`), the tokenizer's neighbour searches (`radius_pairs`,
-`nearest_index`), the rest of the tokenizer (continuous convolutions), each encoder level (attention +
+Parts: prescribed samples (`boundary_samples`), the tokenizer's neighbour searches (`search_pairs`: the
+Verlet-skin reuse test plus any fresh `radius_pairs` search, timed also on its own; `nearest_index`), the rest of the tokenizer (continuous convolutions), each encoder level (attention +
 merge), each decoder layer, the head. Hooks record an event pair around each part (CUDA events on a GPU,
 clock reads on CPU) over a no-gradient rollout of the store's first episode; the medians over steps are
 reported beside the whole step, with and without bf16 autocast. The rollout code is the model's own: the
@@ -25,6 +25,7 @@ from typing import Any
 import torch
 
 import wc.model.layout as layout_module
+import wc.model.neighbor_cache as neighbor_cache_module
 import wc.model.tokenizer as tokenizer_module
 from wc.config import add_params_arguments, load_section, read_params
 from wc.data.store import TrajectoryStore
@@ -80,8 +81,10 @@ def _instrument(model: WorldContact, timer_ref: list[PartTimer | None]) -> None:
     parts.update({f"decoder layer {i}": layer for i, layer in enumerate(model.decoder.layers)})
     for name, module in parts.items():
         module.forward = _wrap(timer_ref, name, module.forward)
-    for fn in ("radius_pairs", "nearest_index"):
-        setattr(tokenizer_module, fn, _wrap(timer_ref, f"neighbour search: {fn}", getattr(tokenizer_module, fn)))
+    tokenizer_module.search_pairs = _wrap(timer_ref, "neighbour search (incl. reuse test)", tokenizer_module.search_pairs)
+    tokenizer_module.nearest_index = _wrap(timer_ref, "neighbour search: nearest_index", tokenizer_module.nearest_index)
+    neighbor_cache_module.radius_pairs = _wrap(timer_ref, "neighbour search: radius_pairs (fresh search)",
+                                               neighbor_cache_module.radius_pairs)
     import wc.model.rollout as rollout_module
     rollout_module.boundary_samples = _wrap(timer_ref, "prescribed samples", layout_module.boundary_samples)
 

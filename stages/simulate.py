@@ -21,15 +21,14 @@ from tqdm import tqdm
 from wc.agent.lift_plot import write_lift_curves
 from wc.agent.memory import FailureMemory
 from wc.agent.parallel import TaskResult, init_worker, run_task
-from wc.agent.runner import AgentConfig
+from wc.agent.runner import AgentConfig, store_scene
 from wc.config import add_params_arguments, load_section, params_hash, read_params
 from wc.data.store import TrajectoryWriter
 from wc.reports import environment_info, write_json_atomic
 from wc.scene.config import SceneConfig
-from wc.scene.scene import OBJECT_KINDS, Scene, build_scene
 from wc.sim.config import SimConfig
 from wc.sim.newton_sim import NewtonSimulator
-from wc.tasks.base import Task, get_task
+from wc.tasks.base import get_task
 from wc.validate import ValidateConfig
 
 SECTIONS = ["scene", "sim", "tasks", "agent", "validate"]
@@ -40,15 +39,6 @@ def task_key(params: dict[str, Any], name: str) -> str:
     tasks = params.get("tasks", {})
     return params_hash({"scene": params.get("scene"), "sim": params.get("sim"),
                         "task": [tasks.get("common"), tasks.get(name)]}, ["scene", "sim", "task"])
-
-
-def store_scene(scene_cfg: SceneConfig, tasks: list[Task]) -> Scene:
-    """Every object any task predicts or holds: the store's objects and prescribed sample sets."""
-    objects = [n for n in OBJECT_KINDS if any(n in t.objects for t in tasks)]
-    held: dict[str, tuple] = {}
-    for task in tasks:
-        held.update(task.held())
-    return build_scene(scene_cfg, objects, held={n: held[n] for n in OBJECT_KINDS if n in held})
 
 
 def output_params(params: dict[str, Any]) -> dict[str, Any]:

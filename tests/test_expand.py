@@ -1,6 +1,7 @@
 """Stage `expand` on a synthetic store with a tiny untrained WorldContact: rigid initial-state transforms,
-batched rollouts that survive a diverged member, schema-valid output, per-check rejection counts,
-determinism and clear errors."""
+the simulator's frame-0 posture (planned on the state before settling), infeasible plans that penetrate at
+frame 0, parents of the same cell, batched rollouts that survive a diverged member, contact-projected
+schema-valid output, per-check rejection counts, determinism and clear errors."""
 
 from __future__ import annotations
 
@@ -18,15 +19,19 @@ from stages.expand import main
 from tests.synthetic_store import write_synthetic_store
 from wc.config import ParamsError, load_section, read_params
 from wc.data.store import TrajectoryStore, copy_store
-from wc.expand import ExpandConfig, NoSourceEpisodesError, check_on_table, expand, finite_rollout, planar_transform
+from wc.dynamics import ObjectState
+from wc.expand import (ExpandConfig, NoSourceEpisodesError, SourceEpisode, check_clear_at_start, check_on_table,
+                       expand, finite_rollout, pick_parent, plan_episode, planar_transform, presettle_state)
 from wc.model.config import ModelConfig
 from wc.model.projection import edges_from_faces
 from wc.model.worldcontact import WorldContact
 from wc.scene.config import SceneConfig
 from wc.scene.scene import build_scene
-from wc.tasks.base import InfeasibleEpisode
+from wc.tasks.base import EpisodeSpec, InfeasibleEpisode, get_task
 from wc.train.checkpoint import save_weights
 from wc.validate import PREDICATES
+from wc.validate.config import ValidateConfig
+from wc.validate.predicates import cloth_rows, robot_boxes, table_and_robot_distance
 
 TASK = "lift_handle"
 # Tolerances so loose that a tiny untrained model's rollouts pass every check (the acceptance path);
@@ -137,6 +142,8 @@ def test_stage_writes_checked_worldcontact_episodes(run, store_path, params):
     assert r["accepted"] == 2 and r["target_reached"] and r["expanded_total"] == 4
     assert r["generated"] == r["accepted"] + sum(r["rejections"].values())
     assert set(PREDICATES) <= set(r["rejections"]) and r["trajectories_per_min"] > 0 and r["device"] == "cpu"
+    assert r["contact_projection"] is True  # the params default
+    assert [s["presettle_state"] for s in r["sources"]] == [False, False]  # synthetic: not the agent's frame 0
     src, dst = TrajectoryStore(store_path), TrajectoryStore(out / "expanded.zarr")
     assert dst.attrs["created_by"] == "stages.expand" and dst.object_names == src.object_names
     assert set(dst.prescribed) == set(src.prescribed)
@@ -156,6 +163,8 @@ def test_stage_writes_checked_worldcontact_episodes(run, store_path, params):
         assert np.allclose(e["link_poses"], scene.link_poses(e["action"]), atol=1e-6)
         assert e["action"][:, 13].max() > e["action"][:, 13].min()  # the right gripper opens and closes
         assert e["env_poses"].shape == (len(e["x"]), 1, 7)
+        depth = table_and_robot_distance(scene, e["x"][1:, cloth_rows(scene)], e["link_poses"][1:])
+        assert depth.min() > -1e-5  # contact-projected after every step: nothing inside the table or the robot
 
 
 def test_same_seed_same_output(run, tmp_path, params, store_path, model_dir):
@@ -215,3 +224,64 @@ def test_command_line(tmp_path, params, store_path, model_dir, capsys):
           "--report", str(tmp_path / "c.json")])
     assert "expand lift_handle: 1/1 generated episodes accepted" in capsys.readouterr().out
     assert json.loads((tmp_path / "c.json").read_text())["accepted"] == 1
+
+
+@pytest.fixture(scope="module")
+def rim(params):
+    """lift_body (a rim grasp), its scene, a parent spec and the parent's state before settling."""
+    scene = build_scene(load_section(params, "scene", SceneConfig), ["bag"])
+    task = get_task("lift_body", params)
+    spec = EpisodeSpec("lift_body", 7, 1, 0.08, 0.09)
+    return task, scene, spec, task.initial_state(scene, spec, np.random.default_rng(spec.seed))
+
+
+def _settled(x: np.ndarray, top_z: float) -> np.ndarray:
+    """A stand-in for the simulator's settling: the dropped bag sags to 85 % of its height on the table."""
+    y = x.astype(np.float64).copy()
+    y[:, 2] = top_z + 0.85 * (y[:, 2] - y[:, 2].min())
+    return y.astype(np.float32)
+
+
+def test_frame0_posture_is_planned_on_the_state_before_settling(rim, params):
+    """The simulator agent plans frame 0's posture (settle_action) on the state before settling and lets the bag
+    settle under it; expansion must do the same, not re-plan it on the settled (sagged) state."""
+    task, scene, spec, initial = rim
+    action0 = task.settle_action(scene, spec, initial)  # what the agent recorded as the parent's frame 0
+    x0 = _settled(initial.x, scene.table.top_z)
+    assert np.abs(task.settle_action(scene, spec, ObjectState(x0, np.zeros_like(x0))) - action0).max() > 1e-3
+    attrs = {"task": spec.task, "seed": spec.seed, "cell": spec.cell, "speed": spec.speed, "amplitude": spec.amplitude}
+    redrawn = presettle_state(task, scene, attrs, x0, action0)
+    assert redrawn is not None and np.array_equal(redrawn, initial.x)
+    assert presettle_state(task, scene, attrs, x0, scene.home_action()) is None  # not the agent's frame 0
+    source = SourceEpisode("ep_p", spec.cell, x0, {}, redrawn, True)
+    loose = load_section(params, "validate", ValidateConfig)
+    still = load_section({**params, "expand": {**params["expand"], "yaw_range_deg": [0.0, 0.0],
+                                               "shift_x_range_m": [0.0, 0.0], "shift_y_range_m": [0.0, 0.0]}},
+                         "expand", ExpandConfig)
+    planned = plan_episode(task, scene, source, EpisodeSpec("lift_body", 11, spec.cell, 0.07, 0.08), still, 0.04, loose)
+    assert np.abs(planned.actions[0] - action0).max() < 1e-5 and np.array_equal(planned.x0, x0)
+    cfg = load_section(params, "expand", ExpandConfig)
+    moved = plan_episode(task, scene, source, EpisodeSpec("lift_body", 12, spec.cell, 0.07, 0.08), cfg, 0.04, loose)
+    again = planar_transform(initial.x, moved.yaw_deg, moved.shift_m, x0[:, :2].astype(np.float64).mean(0))
+    assert np.abs(moved.actions[0] - task.settle_action(scene, spec, ObjectState(again, np.zeros_like(again)))).max() < 1e-5
+
+
+def test_a_plan_that_penetrates_at_frame_0_is_infeasible(rim, params):
+    task, scene, spec, initial = rim
+    cfg = load_section(read_params("params.yaml"), "validate", ValidateConfig)  # the module's params are LOOSE
+    start = scene.home_action()
+    x = _settled(initial.x, scene.table.top_z)
+    check_clear_at_start(scene, x, start, cfg)  # clear: no error
+    with pytest.raises(InfeasibleEpisode, match="frame-0 state penetrates"):
+        check_clear_at_start(scene, x - np.float32([0.0, 0.0, 0.02]), start, cfg)  # 2 cm into the table
+    centre = robot_boxes(scene, scene.link_poses(start[None]), ("right_link6",))[0][0, 0]
+    wrist = x + (centre - x[0]).astype(np.float32)  # a vertex at the wrist box's centre
+    with pytest.raises(InfeasibleEpisode, match=r"robot: \d+\.\d mm; tolerance 8\.0 mm"):
+        check_clear_at_start(scene, wrist, start, cfg)
+
+
+def test_parents_of_the_proposed_cell_come_first():
+    x = np.zeros((3, 3), np.float32)
+    sources = [SourceEpisode(f"ep_{i}", cell, x, {}, x) for i, cell in enumerate((0, 1, 1))]
+    assert [pick_parent(sources, 1, i).eid for i in range(4)] == ["ep_1", "ep_2", "ep_1", "ep_2"]
+    assert [pick_parent(sources, 2, i).eid for i in range(4)] == ["ep_0", "ep_1", "ep_2", "ep_0"]  # none: all in turn

@@ -186,3 +186,37 @@ def test_projection_gradcheck_two_triangles(smoothing_iterations: int, constrain
     assert ((ratio < 0.9) | (ratio > 1.1)).sum() >= 2
     proj = TopologyProjection(edges, rest, 4, smoothing_iterations, constraint_iterations=constraint_iterations)
     assert torch.autograd.gradcheck(proj, (x_prev, x_pred))
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA device (run on the GPU machine)")
+def test_projection_cuda_graph_matches_eager_and_follows_new_inputs() -> None:
+    """The no-grad CUDA path replays a captured graph: same result as eager, for new inputs of the same shape,
+    and a second shape captures its own graph; with gradients the eager path runs."""
+    torch.manual_seed(0)
+    x, faces = grid_mesh(12)
+    edges = edges_from_faces(faces).cuda()
+    rest = (x[edges[:, 1].cpu()] - x[edges[:, 0].cpu()]).norm(dim=-1).cuda()
+    proj = TopologyProjection(edges, rest, x.shape[0])
+    for batch in (2, 2, 3):
+        x_prev = x.cuda()[None].expand(batch, -1, -1).contiguous()
+        x_pred = x_prev + 0.003 * torch.randn(batch, *x.shape, device="cuda")
+        with torch.no_grad():
+            graphed = proj(x_prev, x_pred)
+        torch.testing.assert_close(graphed, proj.project(x_prev, x_pred), atol=1e-6, rtol=0)
+    assert len(proj._graphs) == 2
+    x_pred.requires_grad_(True)
+    proj(x_prev, x_pred).sum().backward()
+    assert x_pred.grad is not None
+
+
+def test_projection_without_cuda_graph_is_the_eager_projection() -> None:
+    """On CPU (and with cuda_graph off) forward is exactly project(), with and without gradients."""
+    torch.manual_seed(1)
+    x, faces = grid_mesh(8)
+    edges = edges_from_faces(faces)
+    rest = (x[edges[:, 1]] - x[edges[:, 0]]).norm(dim=-1)
+    x_pred = x[None] + 0.003 * torch.randn(1, *x.shape)
+    for proj in (TopologyProjection(edges, rest, x.shape[0]), TopologyProjection(edges, rest, x.shape[0], cuda_graph=False)):
+        with torch.no_grad():
+            assert torch.equal(proj(x[None], x_pred), proj.project(x[None], x_pred))
+        assert not proj._graphs

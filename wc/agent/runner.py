@@ -17,7 +17,7 @@ import numpy as np
 from wc.agent.planner import Planner
 from wc.dynamics import ObjectState
 from wc.scene.config import SceneConfig
-from wc.scene.scene import Scene, build_scene
+from wc.scene.scene import OBJECT_KINDS, Scene, build_scene
 from wc.sim.config import SimConfig
 from wc.sim.kinematic import pose_twists, transform_points
 from wc.sim.newton_sim import NewtonSimulator
@@ -94,6 +94,15 @@ def build_task_world(scene_cfg: SceneConfig, sim_cfg: SimConfig, task: Task) -> 
     sim_scene = build_scene(scene_cfg, [o for o in task.objects if o not in handoff], held=held)
     free_scene = build_scene(scene_cfg, task.objects)
     return TaskWorld(task, scene, sim_scene, NewtonSimulator(sim_scene, sim_cfg), NewtonSimulator(free_scene, sim_cfg))
+
+
+def store_scene(scene_cfg: SceneConfig, tasks: list[Task]) -> Scene:
+    """Every object any task predicts or holds: the store's objects and prescribed sample sets."""
+    objects = [n for n in OBJECT_KINDS if any(n in t.objects for t in tasks)]
+    held: dict[str, tuple] = {}
+    for task in tasks:
+        held.update(task.held())
+    return build_scene(scene_cfg, objects, held={n: held[n] for n in OBJECT_KINDS if n in held})
 
 
 def episode_seed(stage_seed: int, task_index: int, episode_index: int) -> int:

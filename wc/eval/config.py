@@ -5,23 +5,38 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
-MethodKind = Literal["worldcontact", "baseline", "zero_motion", "constant_velocity"]
+MethodKind = Literal["worldcontact", "baseline", "zero_motion", "constant_velocity", "newton"]
 CHECKPOINT_KINDS = ("worldcontact", "baseline")
+NEWTON_KEYS = ("iterations", "substeps", "cloth_vertices_scale")  # settings only kind newton takes
 
 
 @dataclass(frozen=True)
 class MethodSpec:
     """One evaluated method: a WorldContact checkpoint dir (model.safetensors + model.json), a baseline dir
-    (wc.baselines.load_baseline), or a reference that needs no files."""
+    (wc.baselines.load_baseline), a reference that needs no files, or the Newton source simulator at params
+    `sim` with the overrides below (unset: as in params `sim` / `scene`)."""
 
     kind: MethodKind
     path: str = ""  # checkpoint directory, relative to the working directory; absent -> skipped with a note
+    iterations: int | None = None  # newton: VBD iterations per solver step
+    substeps: int | None = None  # newton: solver steps per frame; the solver dt becomes frame dt / substeps
+    cloth_vertices_scale: float | None = None  # newton: every cloth mesh built at this x its target_vertices
 
     def validate(self) -> None:
         if self.kind in CHECKPOINT_KINDS and not self.path:
             raise ValueError(f"kind {self.kind!r} needs a path (its checkpoint directory)")
         if self.kind not in CHECKPOINT_KINDS and self.path:
             raise ValueError(f"kind {self.kind!r} takes no path, got {self.path!r}")
+        for key in NEWTON_KEYS:
+            value = getattr(self, key)
+            if value is None:
+                continue
+            if self.kind != "newton":
+                raise ValueError(f"{key} is a setting of kind 'newton' only, not of kind {self.kind!r}")
+            if key == "cloth_vertices_scale" and not value > 0:
+                raise ValueError(f"{key} must be > 0, got {value}")
+            if key != "cloth_vertices_scale" and value < 1:
+                raise ValueError(f"{key} must be >= 1, got {value}")
 
 
 @dataclass(frozen=True)
@@ -36,8 +51,10 @@ class EvaluateConfig:
     contact_band_m: float = 0.01  # contact area: cloth within this signed distance of any geometry
     divergence_strain: float = 2.0  # a rollout diverges at the first step with max |len/rest - 1| above this ...
     divergence_penetration_pct: float = 25.0  # ... or more than this % of cloth area penetrating, or non-finite
-    device: str = "cpu"  # cpu | cuda | cuda:k | auto
+    device: str = "cpu"  # cpu | cuda | cuda:k | auto (the Newton methods simulate on it too)
     seed: int = 0
+    chart_max_cases: int | None = None  # held-out rollouts on the speed-accuracy chart, for every method (the
+    # Newton methods run on only these: they cost real simulation); None = all
 
     def validate(self) -> None:
         for name in ("rollout_frames", "stability_frames", "stability_per_task"):
@@ -46,6 +63,8 @@ class EvaluateConfig:
         for name in ("penetration_depth_m", "contact_band_m", "divergence_strain", "divergence_penetration_pct"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        if self.chart_max_cases is not None and self.chart_max_cases < 1:
+            raise ValueError(f"chart_max_cases must be >= 1 or null (all), got {self.chart_max_cases}")
         if not self.methods:
             raise ValueError("methods is empty: name at least one method to evaluate")
         if not (self.device in ("cpu", "cuda", "auto") or self.device.startswith("cuda:")):

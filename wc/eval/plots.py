@@ -6,6 +6,7 @@ from __future__ import annotations
 import warnings
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -63,13 +64,20 @@ def plot_stability(curves: Sequence[StabilityCurve], path: str | Path, dt: float
     return save_figure_atomic(fig, path)
 
 
-SPEED_ACCURACY_HEADER = ["method", "simulated_s_per_wall_s", "position_mse_m2", "penetration_rate_pct"]
+SPEED_ACCURACY_HEADER = ["method", "kind", "simulated_s_per_wall_s", "position_mse_m2", "penetration_rate_pct"]
+MARKERS = {"worldcontact": "o", "baseline": "^", "newton": "s", "zero_motion": "x", "constant_velocity": "+"}
 
 
-def speed_accuracy_rows(methods: dict[str, dict[str, float]], dt: float) -> list[list[object]]:
-    """One row per method: speed (simulated seconds per wall second, dt / s_per_step) and its held-out errors."""
-    return [[name, dt / m["s_per_step"] if m["s_per_step"] > 0 else float("inf"), m["position_mse_m2"],
-             m["penetration_rate_pct"]] for name, m in methods.items()]
+def speed_accuracy_rows(methods: dict[str, dict[str, Any]], dt: float,
+                        kinds: dict[str, str] | None = None) -> list[list[object]]:
+    """One row per method: its kind, speed (simulated seconds per wall second, dt / s_per_step; inf for a method
+    timed at zero) and its held-out position MSE and penetration rate (None where undefined)."""
+    rows = []
+    for name, m in methods.items():
+        per_step = m["s_per_step"]
+        speed = None if per_step is None else dt / per_step if per_step > 0 else float("inf")
+        rows.append([name, (kinds or {}).get(name, ""), speed, m["position_mse_m2"], m["penetration_rate_pct"]])
+    return rows
 
 
 def pareto_front(points: Sequence[tuple[float, float]]) -> list[int]:
@@ -83,23 +91,37 @@ def pareto_front(points: Sequence[tuple[float, float]]) -> list[int]:
     return front
 
 
-def plot_speed_accuracy(rows: list[list[object]], path: str | Path) -> Path:
-    """Speed against accuracy, one labelled point per method (log-log) and the Pareto front, to `path` (PNG)."""
-    plt = pyplot()
-    fig, ax = plt.subplots(figsize=(6.4, 4.6), constrained_layout=True)
-    shown = [(str(r[0]), float(r[1]), float(r[2])) for r in rows if np.isfinite(float(r[1])) and float(r[2]) > 0]
-    for i, (name, speed, mse) in enumerate(shown):
-        ax.scatter(speed, mse, color=f"C{i}", s=40)
-        ax.annotate(name, (speed, mse), textcoords="offset points", xytext=(5, 4), fontsize=8)
-    front = [shown[i] for i in pareto_front([(s, e) for _, s, e in shown])]
+def _finite(value: object) -> bool:
+    return value is not None and bool(np.isfinite(float(value)))
+
+
+def _speed_panel(ax: Any, rows: list[list[object]], column: int, label: str, log_y: bool) -> None:
+    """One labelled marker per row (kind -> marker shape) at (speed, rows[column]) and the Pareto front."""
+    shown = [(str(r[0]), str(r[1]), float(r[2]), float(r[column])) for r in rows
+             if _finite(r[2]) and _finite(r[column]) and (float(r[column]) > 0 or not log_y)]
+    for i, (name, kind, speed, value) in enumerate(shown):
+        ax.scatter(speed, value, color=f"C{i % 10}", marker=MARKERS.get(kind, "o"), s=40)
+        ax.annotate(name, (speed, value), textcoords="offset points", xytext=(5, 4), fontsize=7)
+    front = [shown[i] for i in pareto_front([(s, v) for _, _, s, v in shown])]
     if len(front) > 1:
-        ax.step([s for _, s, _ in front], [e for _, _, e in front], where="post", color="k", linestyle="--",
+        ax.step([s for _, _, s, _ in front], [v for _, _, _, v in front], where="post", color="k", linestyle="--",
                 linewidth=0.8, label="Pareto front")
         ax.legend(fontsize=8)
     ax.set_xscale("log")
-    ax.set_yscale("log")
+    if log_y:
+        ax.set_yscale("log")
     ax.set_xlabel("speed [simulated s per wall s] (higher is faster)")
-    ax.set_ylabel("held-out position MSE [m²] (lower is better)")
+    ax.set_ylabel(label)
     ax.grid(alpha=0.3, which="both")
-    ax.set_title("Speed against accuracy on the held-out rollouts", fontsize=10)
+
+
+def plot_speed_accuracy(rows: list[list[object]], path: str | Path, rollouts: int | None = None) -> Path:
+    """Speed against held-out position MSE (log-log) and against penetration, one labelled marker per method and
+    setting (squares: Newton settings), Pareto fronts drawn; to `path` (PNG)."""
+    plt = pyplot()
+    fig, axes = plt.subplots(1, 2, figsize=(12.8, 4.8), constrained_layout=True)
+    _speed_panel(axes[0], rows, 3, "held-out position MSE [m²] (lower is better)", log_y=True)
+    _speed_panel(axes[1], rows, 4, "penetrating cloth area [%] (lower is better)", log_y=False)
+    on = f" ({rollouts} held-out rollouts, the same for every method)" if rollouts else ""
+    fig.suptitle(f"Speed against accuracy{on}; rollout only", fontsize=10)
     return save_figure_atomic(fig, path)

@@ -9,19 +9,28 @@ A `Predictor` advances the object state of one scene layout under recorded presc
 
 The baselines (wc.baselines.load_baseline(path)) follow the same shape. Implemented here: zero motion,
 constant velocity and WorldContact from a checkpoint directory.
+
+A `CasePredictor` needs more of a case than the model inputs: the Newton simulator (wc.eval.newton_predictor)
+re-simulates the case in its collision scene under its commanded actions; `prepare` (untimed) builds and
+warms it up, `rollout_case` is what the speed-accuracy chart times.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Protocol
+from typing import Protocol, runtime_checkable
 
+import numpy as np
 import torch
 
+from wc.eval.cases import Case
 from wc.eval.config import MethodSpec
+from wc.eval.newton_predictor import NewtonPredictor
 from wc.model.layout import SceneLayout
 from wc.model.rollout import rollout
 from wc.model.worldcontact import WorldContact
+from wc.scene.config import SceneConfig
+from wc.sim.config import SimConfig
 from wc.train.checkpoint import load_model
 from wc.train.config import TrainConfig
 
@@ -32,6 +41,17 @@ class Predictor(Protocol):
     def rollout(self, layout: SceneLayout, x0: torch.Tensor, v0: torch.Tensor, poses: torch.Tensor,
                 dt: float) -> tuple[torch.Tensor, torch.Tensor]:
         """Predicted x, v (B, T-1, N, 3) for frames 1..T-1 from x0, v0 (B, N, 3) under poses (B, T, P, 7)."""
+        ...
+
+
+@runtime_checkable
+class CasePredictor(Protocol):
+    def prepare(self, case: Case, actions: np.ndarray) -> None:
+        """Everything before the timed rollout (building, compiling, one warm-up); actions (T, 14)."""
+        ...
+
+    def rollout_case(self, case: Case, actions: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
+        """Predicted x, v (T-1, N, 3) for the case's frames 1..T-1 under its actions (T, 14)."""
         ...
 
 
@@ -107,9 +127,16 @@ class WorldContactPredictor:
         return xs, vs
 
 
-def load_predictor(spec: MethodSpec, train_cfg: TrainConfig, device: torch.device) -> Predictor:
-    """The predictor a params method entry names. FileNotFoundError when its checkpoint directory is absent
-    (the stage skips such methods with a note); ImportError when no baseline package is installed."""
+def load_predictor(spec: MethodSpec, train_cfg: TrainConfig, device: torch.device,
+                   scene_cfg: SceneConfig | None = None, sim_cfg: SimConfig | None = None
+                   ) -> Predictor | CasePredictor:
+    """The predictor a params method entry names (kind newton needs the params `scene` and `sim` configs).
+    FileNotFoundError when its checkpoint directory is absent (the stage skips such methods with a note);
+    ImportError when no baseline package is installed."""
+    if spec.kind == "newton":
+        if scene_cfg is None or sim_cfg is None:
+            raise ValueError("a method of kind 'newton' needs the params `scene` and `sim` sections")
+        return NewtonPredictor(spec, scene_cfg, sim_cfg, device)
     if spec.kind == "zero_motion":
         return ZeroMotion()
     if spec.kind == "constant_velocity":

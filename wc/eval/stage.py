@@ -10,6 +10,13 @@ the longest phases (test split, else every episode) for min(stability_frames, ph
 Methods come from params `evaluate.methods`; a checkpoint directory that does not exist is skipped and
 listed under `skipped` in the report. "ground_truth" (the recorded frames) is scored beside them as the
 penetration and strain floor of the data itself.
+
+The speed-accuracy chart (speed_accuracy.{csv,png}, report key `speed_accuracy`) compares every method on the
+same held-out rollouts: all of them, or `chart_max_cases` of them taking the tasks in turn. The Newton methods
+(kind newton: the source simulator at its reference and cheaper settings) cost real simulation, so they run on
+the chart's rollouts only and appear in the chart and its report block, not in `methods` (all held-out rollouts)
+nor in the long rollouts. Speed is the frame dt over the wall time per predicted step, rollout only (Newton's
+construction, compilation and warm-up are not timed).
 """
 
 from __future__ import annotations
@@ -27,32 +34,35 @@ from wc.config import ParamsError, load_section, params_hash
 from wc.data.store import TrajectoryStore
 from wc.devices import resolve_device
 from wc.eval.cases import Case, CaseReader, held_out_phases, long_phases
-from wc.eval.config import EvaluateConfig
+from wc.eval.config import EvaluateConfig, MethodSpec
 from wc.eval.metrics import ErrorTally, finite_or_none, squared_error
 from wc.eval.penetration import PenetrationTally, cloth_signed_distance, penetrating_area_pct
 from wc.eval.plots import SPEED_ACCURACY_HEADER, plot_speed_accuracy, plot_stability, speed_accuracy_rows
-from wc.eval.predictors import Predictor, WorldContactPredictor, load_predictor
+from wc.eval.predictors import CasePredictor, Predictor, WorldContactPredictor, load_predictor
 from wc.eval.stability import (CSV_HEADER, StabilityCurve, csv_rows, divergence_summary, first_divergence,
                               max_edge_strain)
 from wc.model.config import ModelConfig
 from wc.reports import environment_info, write_csv_atomic, write_json_atomic
 from wc.scene.config import SceneConfig
+from wc.sim.config import SimConfig
 from wc.train.config import TrainConfig
 from wc.train.data import Phase
 
-SECTIONS = ["evaluate", "scene", "model", "train"]
+SECTIONS = ["evaluate", "scene", "model", "train", "sim"]
 GROUND_TRUTH = "ground_truth"
+AnyPredictor = Predictor | CasePredictor
 
 
-def load_methods(cfg: EvaluateConfig, train_cfg: TrainConfig, tag_scale: float, device: torch.device
-                 ) -> tuple[dict[str, Predictor], dict[str, str]]:
+def load_methods(cfg: EvaluateConfig, train_cfg: TrainConfig, tag_scale: float, device: torch.device,
+                 scene_cfg: SceneConfig | None = None, sim_cfg: SimConfig | None = None
+                 ) -> tuple[dict[str, AnyPredictor], dict[str, str]]:
     """(predictors by name, skipped methods with the reason): absent checkpoint directories are skipped."""
     predictors, skipped = {}, {}
     for name, spec in cfg.methods.items():
         if name == GROUND_TRUTH:
             raise ParamsError(f"evaluate.methods.{name}: the name {GROUND_TRUTH!r} is reserved for the recorded data")
         try:
-            predictor = load_predictor(spec, train_cfg, device)
+            predictor = load_predictor(spec, train_cfg, device, scene_cfg, sim_cfg)
         except FileNotFoundError as err:
             skipped[name] = str(err)
             continue
@@ -66,12 +76,24 @@ def load_methods(cfg: EvaluateConfig, train_cfg: TrainConfig, tag_scale: float, 
     return predictors, skipped
 
 
-def predict(predictor: Predictor, case: Case, dt: float, device: torch.device) -> tuple[np.ndarray, np.ndarray]:
-    """Predicted x, v (S, N, 3) for frames 1..S of a case (float64 numpy; NaN after a raised FloatingPointError)."""
-    x0, v0, poses = case.inputs(device)
+def case_actions(store: TrajectoryStore, case: Case) -> np.ndarray:
+    """The commanded actions (T, 14) of a case's frames."""
+    return store.read_window(case.phase.episode, case.phase.start, len(case.x), ("action",))["action"]
+
+
+def predict(predictor: AnyPredictor, case: Case, dt: float, device: torch.device,
+            actions: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Predicted x, v (S, N, 3) for frames 1..S of a case (float64 numpy; NaN after a raised FloatingPointError);
+    a CasePredictor also takes the case's actions (T, 14)."""
     shape = (1, case.steps, *case.x.shape[1:])
     try:
-        x, v = predictor.rollout(case.layout, x0, v0, poses, dt)
+        if isinstance(predictor, CasePredictor):
+            if actions is None:
+                raise ValueError(f"{type(predictor).__name__} needs the case's actions")
+            x, v = (torch.as_tensor(a)[None] for a in predictor.rollout_case(case, actions, dt))
+        else:
+            x0, v0, poses = case.inputs(device)
+            x, v = predictor.rollout(case.layout, x0, v0, poses, dt)
     except FloatingPointError:
         return np.full(shape[1:], np.nan), np.full(shape[1:], np.nan)
     x, v = torch.as_tensor(x), torch.as_tensor(v)  # a baseline may answer in numpy
@@ -128,34 +150,77 @@ def stability_curve(method: str, case: Case, x: np.ndarray, signed_distance: np.
                           penetration, strain, step)
 
 
-def held_out_scores(reader: CaseReader, phases: list[Phase], predictors: dict[str, Predictor], cfg: EvaluateConfig,
-                    dt: float) -> tuple[dict[str, MethodScores], list[dict[str, Any]]]:
+def chart_phases(store: TrajectoryStore, phases: list[Phase], max_cases: int | None) -> list[Phase]:
+    """The held-out phases on the speed-accuracy chart: every one that can be rolled out, or the first
+    `max_cases` taking the tasks in turn (each task's first phase in held-out order, then each one's second...)."""
+    rollable = [p for p in phases if p.stop - p.start >= 2]
+    if max_cases is None or len(rollable) <= max_cases:
+        return rollable
+    by_task: dict[str, list[Phase]] = {}
+    for p in rollable:
+        by_task.setdefault(str(store.episode_attrs(p.episode)["task"]), []).append(p)
+    rounds = max(len(t) for t in by_task.values())
+    return [t[k] for k in range(rounds) for t in by_task.values() if k < len(t)][:max_cases]
+
+
+@dataclass
+class HeldOut:
+    """Held-out scores: `scores` over every rollout (not the case predictors), `chart` over the chart's
+    rollouts (every method), and the rollouts made (`rolled`, `charted`)."""
+
+    scores: dict[str, MethodScores]
+    chart: dict[str, MethodScores]
+    rolled: list[dict[str, Any]]
+    charted: list[dict[str, Any]]
+
+
+def held_out_scores(reader: CaseReader, phases: list[Phase], predictors: dict[str, AnyPredictor],
+                    cfg: EvaluateConfig, dt: float) -> HeldOut:
     """Scores of the recorded data and every method over rollouts of up to rollout_frames steps from each
-    phase's first frame, and the list of rollouts made."""
+    phase's first frame; case predictors (Newton) roll out the chart's phases only."""
     band = cfg.contact_band_m
-    scores = {m: MethodScores(ErrorTally(cfg.rollout_frames), cfg.penetration_depth_m, band)
-              for m in [GROUND_TRUTH, *predictors]}
-    rolled = []
+
+    def tallies(names: list[str]) -> dict[str, MethodScores]:
+        return {m: MethodScores(ErrorTally(cfg.rollout_frames), cfg.penetration_depth_m, band) for m in names}
+
+    on_chart = set(chart_phases(reader.store, phases, cfg.chart_max_cases))
+    by_case = {n: isinstance(p, CasePredictor) for n, p in predictors.items()}
+    out = HeldOut(tallies([GROUND_TRUTH, *(n for n in predictors if not by_case[n])]), tallies(list(predictors)),
+                  [], [])
     for phase in tqdm(phases, desc="evaluate held-out", unit="rollout"):
         if phase.stop - phase.start < 2:
             continue
         case = reader.case(phase, cfg.rollout_frames + 1)
-        rolled.append({"episode": phase.episode, "task": case.task, "start_frame": phase.start, "steps": case.steps})
+        rollout = {"episode": phase.episode, "task": case.task, "start_frame": phase.start, "steps": case.steps}
+        out.rolled.append(rollout)
+        charted = phase in on_chart
+        if charted:
+            out.charted.append(rollout)
         truth_x, truth_v = case.x[1:].astype(np.float64), case.v[1:].astype(np.float64)
-        scores[GROUND_TRUTH].add(case, truth_x, truth_v,
-                                 cloth_signed_distance(case.scene, truth_x, case.link_poses[1:], band))
+        out.scores[GROUND_TRUTH].add(case, truth_x, truth_v,
+                                     cloth_signed_distance(case.scene, truth_x, case.link_poses[1:], band))
+        actions = case_actions(reader.store, case) if charted and any(by_case.values()) else None
         for name, predictor in predictors.items():
+            if by_case[name]:
+                if not charted:
+                    continue
+                predictor.prepare(case, actions)  # build, compile, warm up: not timed
             t0 = time.perf_counter()
-            x, v = predict(predictor, case, dt, reader.device)
-            scores[name].seconds += time.perf_counter() - t0
-            scores[name].steps += case.steps
-            scores[name].add(case, x, v, cloth_signed_distance(case.scene, x, case.link_poses[1:], band))
-    return scores, rolled
+            x, v = predict(predictor, case, dt, reader.device, actions)
+            seconds = time.perf_counter() - t0
+            signed_distance = cloth_signed_distance(case.scene, x, case.link_poses[1:], band)
+            for table in ([out.chart] if charted else []) + ([] if by_case[name] else [out.scores]):
+                table[name].seconds += seconds
+                table[name].steps += case.steps
+                table[name].add(case, x, v, signed_distance)
+    return out
 
 
-def stability_curves(reader: CaseReader, phases: list[Phase], predictors: dict[str, Predictor],
+def stability_curves(reader: CaseReader, phases: list[Phase], predictors: dict[str, AnyPredictor],
                      cfg: EvaluateConfig, dt: float) -> list[StabilityCurve]:
-    """Curves of the recorded data and every method over rollouts of up to stability_frames steps."""
+    """Curves of the recorded data and every method (not the case predictors: Newton is the data's own
+    simulator) over rollouts of up to stability_frames steps."""
+    predictors = {n: p for n, p in predictors.items() if not isinstance(p, CasePredictor)}
     curves = []
     for phase in tqdm(phases, desc="evaluate stability", unit="rollout"):
         if phase.stop - phase.start < 2:
@@ -168,6 +233,13 @@ def stability_curves(reader: CaseReader, phases: list[Phase], predictors: dict[s
     return curves
 
 
+def newton_setting(spec: MethodSpec, sim_cfg: SimConfig) -> dict[str, Any]:
+    """The simulator setting of a Newton method, for the report."""
+    substeps = spec.substeps or sim_cfg.substeps
+    return {"iterations": spec.iterations or sim_cfg.iterations, "substeps": substeps,
+            "dt_s": sim_cfg.frame_dt_s / substeps, "cloth_vertices_scale": spec.cloth_vertices_scale or 1.0}
+
+
 def evaluate(params: dict[str, Any], store_path: str | Path = "data/source/trajectories.zarr",
              metrics: str | Path = "reports/metrics.json", stability_csv: str | Path = "reports/stability.csv",
              stability_png: str | Path = "reports/stability.png") -> dict[str, Any]:
@@ -177,6 +249,8 @@ def evaluate(params: dict[str, Any], store_path: str | Path = "data/source/traje
     scene_cfg = load_section(params, "scene", SceneConfig)
     model_cfg = load_section(params, "model", ModelConfig)
     train_cfg = load_section(params, "train", TrainConfig)
+    newton = any(spec.kind == "newton" for spec in cfg.methods.values())
+    sim_cfg = load_section(params, "sim", SimConfig) if newton else None
     if not Path(store_path).exists():
         raise FileNotFoundError(f"evaluate: trajectory store not found: {store_path} (run the validate stage first)")
     started = time.perf_counter()
@@ -184,30 +258,36 @@ def evaluate(params: dict[str, Any], store_path: str | Path = "data/source/traje
     device = resolve_device(cfg.device, "evaluate.device")
     store = TrajectoryStore(store_path)
     dt = float(store.dt)
-    predictors, skipped = load_methods(cfg, train_cfg, model_cfg.tag_scale, device)
+    predictors, skipped = load_methods(cfg, train_cfg, model_cfg.tag_scale, device, scene_cfg, sim_cfg)
     reader = CaseReader(store, scene_cfg, model_cfg.tag_scale, device)
 
     held, held_source = held_out_phases(store, train_cfg)
     if not held:
         raise ValueError(f"evaluate: {store_path} has no held-out phase to roll out ({held_source})")
-    scores, rolled = held_out_scores(reader, held, predictors, cfg, dt)
+    held_out = held_out_scores(reader, held, predictors, cfg, dt)
     long, long_source = long_phases(store, cfg.stability_per_task)
     curves = stability_curves(reader, long, predictors, cfg, dt)
 
     write_csv_atomic(stability_csv, CSV_HEADER, csv_rows(curves, dt))
     plot_stability(curves, stability_png, dt, cfg.divergence_strain, cfg.divergence_penetration_pct)
-    summaries = {m: s.summary() for m, s in scores.items()}
+    summaries = {m: s.summary() for m, s in held_out.scores.items()}
     ground_truth = summaries.pop(GROUND_TRUTH)
-    speed_rows = speed_accuracy_rows(summaries, dt)  # beside the metrics: speed_accuracy.{csv,png}
+    chart = {m: s.summary() for m, s in held_out.chart.items()}
+    kinds = {m: cfg.methods[m].kind for m in chart}
+    speed_rows = speed_accuracy_rows(chart, dt, kinds)  # beside the metrics: speed_accuracy.{csv,png}
     write_csv_atomic(Path(metrics).with_name("speed_accuracy.csv"), SPEED_ACCURACY_HEADER, speed_rows)
-    plot_speed_accuracy(speed_rows, Path(metrics).with_name("speed_accuracy.png"))
+    plot_speed_accuracy(speed_rows, Path(metrics).with_name("speed_accuracy.png"), len(held_out.charted))
     stability = divergence_summary(curves)
     result = {
         "methods": summaries,
         "ground_truth": {k: ground_truth[k] for k in ("penetration_rate_pct", "contact_penetration_rate_pct")},
         "skipped": skipped,
-        "held_out": {"source": held_source, "rollouts": len(rolled), "rollout_frames": cfg.rollout_frames,
-                     "phases": rolled},
+        "held_out": {"source": held_source, "rollouts": len(held_out.rolled), "rollout_frames": cfg.rollout_frames,
+                     "phases": held_out.rolled},
+        "speed_accuracy": {"rollouts": len(held_out.charted), "chart_max_cases": cfg.chart_max_cases,
+                           "phases": held_out.charted, "methods": chart,
+                           "newton": {m: newton_setting(cfg.methods[m], sim_cfg) for m in chart
+                                      if cfg.methods[m].kind == "newton"}},
         "stability": {"source": long_source, "stability_frames": cfg.stability_frames,
                       "divergence": {"strain": cfg.divergence_strain,
                                      "penetration_pct": cfg.divergence_penetration_pct},

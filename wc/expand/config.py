@@ -19,6 +19,7 @@ class ExpandConfig:
     shift_x_range_m: Range  # bag xy shift, uniform per axis
     shift_y_range_m: Range
     task_check: bool = True  # also apply the task's own verdict (lift_handle: not_lifted), as the simulator agent does
+    contact_projection: bool = True  # after each predicted step, put cloth vertices inside a body back on its surface
     device: str = "cpu"  # cpu | cuda | cuda:k | auto
     seed: int = 0
 

@@ -1,10 +1,12 @@
 """Stage `expand`: more trajectories of one task from the world model (data/expanded/trajectories.zarr,
 reports/expand.json).
 
-Each generated episode starts from a source episode's settled frame 0 (parents taken in turn), moved rigidly
-on the table (wc.expand.transform); the coverage planner proposes its cell, speed and amplitude, the task
-program plans the right arm's actions against the moved state (wc.expand.plan), and WorldContact rolls the
-batch out autoregressively from v = 0 under the prescribed link and table poses (wc.expand.rollout). Every
+Each generated episode starts from a source episode's settled frame 0 (parents of the proposed cell taken in
+turn, else all of them), moved rigidly on the table (wc.expand.transform); the coverage planner proposes its
+cell, speed and amplitude, the task program plans the right arm's actions against the moved state
+(wc.expand.plan; a plan whose frame 0 already penetrates the start posture is infeasible), and WorldContact
+rolls the batch out autoregressively from v = 0 under the prescribed link and table poses (wc.expand.rollout),
+with the contact projection after every step when `contact_projection` (wc.expand.contact). Every
 rollout then faces the source data's checks (wc.validate.predicates, in their order, plus the task's own
 verdict when `task_check`); only the episodes that pass are written, the others are counted by their first
 failing check. Generation stops when the task's source episodes plus the accepted generated ones reach
@@ -28,7 +30,8 @@ from wc.data.store import TrajectoryStore, TrajectoryWriter
 from wc.devices import resolve_device
 from wc.eval.predictors import CHECKPOINT, WorldContactPredictor
 from wc.expand.config import ExpandConfig
-from wc.expand.plan import PlannedEpisode, SourceEpisode, plan_episode, source_episodes
+from wc.expand.contact import ContactProjectedPredictor
+from wc.expand.plan import PlannedEpisode, SourceEpisode, pick_parent, plan_episode, source_episodes
 from wc.expand.rollout import Rollout, rollout_batch
 from wc.model.layout import scene_layout
 from wc.reports import environment_info, write_json_atomic
@@ -98,8 +101,9 @@ def expand(params: dict[str, Any], model_dir: str | Path = "models/worldcontact"
     sources, scene = source_episodes(src, task, EpisodeScenes(scene_cfg, src))
     device = resolve_device(cfg.device, "expand.device")
     torch.manual_seed(cfg.seed)
-    predictor = WorldContactPredictor.from_dir(model_dir, train_cfg, device)
-    layout = scene_layout(src, list(scene.objects), list(scene.link_names), predictor.tag_scale).to(device)
+    model = WorldContactPredictor.from_dir(model_dir, train_cfg, device)
+    layout = scene_layout(src, list(scene.objects), list(scene.link_names), model.tag_scale).to(device)
+    predictor = ContactProjectedPredictor(model, scene) if cfg.contact_projection else model
     dt = src.dt
     checkpoint = _checkpoint_info(model_dir)
     if checkpoint["dt"] is not None and abs(float(checkpoint["dt"]) - dt) > 1e-9:
@@ -123,9 +127,9 @@ def expand(params: dict[str, Any], model_dir: str | Path = "models/worldcontact"
             planned: list[tuple[PlannedEpisode, SourceEpisode]] = []
             for i in range(attempts, attempts + min(cfg.batch_size, wanted - accepted, cfg.max_attempts - attempts)):
                 spec = planner.propose(task, episode_seed(cfg.seed, 0, i))
-                source = sources[i % len(sources)]
+                source = pick_parent(sources, spec.cell, i)
                 try:
-                    planned.append((plan_episode(task, scene, source, spec, cfg, dt), source))
+                    planned.append((plan_episode(task, scene, source, spec, cfg, dt, validate_cfg), source))
                 except InfeasibleEpisode as err:
                     planner.record(spec, UNREACHABLE)
                     infeasible.append({"seed": spec.seed, "cell": spec.cell, "parent": source.eid, "reason": str(err)})
@@ -153,6 +157,8 @@ def expand(params: dict[str, Any], model_dir: str | Path = "models/worldcontact"
     result = {
         "task": task.name,
         "source_episodes": len(sources),
+        "sources": [{"episode": s.eid, "cell": s.cell, "presettle_state": s.presettle} for s in sources],
+        "contact_projection": cfg.contact_projection,
         "target_trajectories": cfg.target_trajectories,
         "wanted_generated": wanted,
         "attempts": attempts,

@@ -9,13 +9,14 @@ from wc.scene.config import TableConfig
 from wc.tasks.base import InfeasibleEpisode
 
 
-def planar_transform(x: np.ndarray, yaw_deg: float, shift_xy_m: tuple[float, float]) -> np.ndarray:
-    """Vertices x (N, 3) [m] yawed by yaw_deg about the vertical axis through their centroid, then moved by
-    shift_xy_m; z is unchanged. float32 (N, 3)."""
+def planar_transform(x: np.ndarray, yaw_deg: float, shift_xy_m: tuple[float, float],
+                     centre_xy_m: np.ndarray | None = None) -> np.ndarray:
+    """Vertices x (N, 3) [m] yawed by yaw_deg about the vertical axis through centre_xy_m (default: their
+    centroid), then moved by shift_xy_m; z is unchanged. float32 (N, 3)."""
     x = np.asarray(x, np.float64)
     yaw = np.deg2rad(yaw_deg)
     c, s = np.cos(yaw), np.sin(yaw)
-    centre = x[:, :2].mean(axis=0)
+    centre = x[:, :2].mean(axis=0) if centre_xy_m is None else np.asarray(centre_xy_m, np.float64)
     rel = x[:, :2] - centre
     out = x.copy()
     out[:, 0] = centre[0] + c * rel[:, 0] - s * rel[:, 1] + shift_xy_m[0]

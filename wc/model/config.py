@@ -34,6 +34,9 @@ class ModelConfig:
     # predicted velocities, as they do in the stored frames, where V is the frame displacement / Δt);
     # "direct": X̂ = X + ΔX, the paper's equation taken literally.
     position_update: Literal["integrate", "direct"] = "integrate"
+    # Rollouts without gradients reuse neighbour pairs searched with radius + skin while no point has moved
+    # more than ~skin/2 (wc/model/neighbor_cache.py): the same pairs, fewer searches. 0 = search every step.
+    neighbor_skin_m: float = 0.0
 
     def validate(self) -> None:
         for name in ("spatial_radius_m", "topology_radius_m", "controllable_radius_m", "environment_radius_m",
@@ -47,6 +50,8 @@ class ModelConfig:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if self.position_update not in ("integrate", "direct"):
             raise ValueError(f"position_update must be 'integrate' or 'direct', got {self.position_update!r}")
+        if not self.neighbor_skin_m >= 0.0:
+            raise ValueError(f"neighbor_skin_m must be >= 0 (0 = no reuse), got {self.neighbor_skin_m}")
         if not 0.0 <= self.dropout < 1.0:
             raise ValueError(f"dropout must be in [0, 1), got {self.dropout}")
 

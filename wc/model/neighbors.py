@@ -18,6 +18,7 @@ from torch import Tensor
 # force in torch whatever floating-point contraction warp's compiler applies.
 _CANDIDATE_SLACK = 1.0e-4
 _MAX_GRID_DIM = 128  # hash-grid cells per axis; the grid hashes, so this bounds memory, not extent
+_MIN_GRID_DIM = 8
 _CDIST_CHUNK_ELEMENTS = 1 << 24  # query rows x points per cdist call in nearest_index
 
 _warp_ready = False
@@ -78,6 +79,11 @@ def _fill_candidates(
             k += wp.int64(1)
 
 
+def grid_dim(num_points: int) -> int:
+    """Hash-grid cells per axis for `num_points` points: ~8 cells per point, clamped to [8, 128]."""
+    return int(min(_MAX_GRID_DIM, max(_MIN_GRID_DIM, round(2.0 * num_points ** (1.0 / 3.0)))))
+
+
 def _check_points(name: str, t: Tensor) -> None:
     if t.ndim != 2 or t.shape[1] != 3:
         raise ValueError(f"{name} must be (n, 3), got {tuple(t.shape)}")
@@ -135,9 +141,9 @@ def radius_pairs(
     p_group = point_batch.to(torch.int32).contiguous()
     r_search = float(radius) * (1.0 + _CANDIDATE_SLACK)
 
-    # Cell width = search radius, so a query visits 3x3x3 cells; dims only size the hash table.
-    extent = (p32.amax(0) - p32.amin(0)).cpu()
-    dims = [int(min(_MAX_GRID_DIM, max(1, int(e / r_search) + 1))) for e in extent.tolist()]
+    # Cell width = search radius, so a query visits 3x3x3 cells; dims only size the hash table (cells
+    # hash modulo dims), so they come from the point count, not the extent: no host sync.
+    dims = [grid_dim(m)] * 3
 
     wp_device = wp.device_from_torch(device)
     # Launch on torch's current stream so warp and torch work is ordered without extra syncs.

@@ -2,7 +2,9 @@
 
 P smooths the predicted displacement field with a few Laplacian iterations, then keeps every rest
 edge within [min_ratio, max_ratio] of its rest length by Jacobi edge-constraint iterations. All
-plain torch ops, so gradients flow through every iteration into the rollout.
+plain torch ops, so gradients flow through every iteration into the rollout. Without gradients on CUDA
+(rollouts, expansion) the fixed-shape loop is captured once per input shape as a CUDA graph and
+replayed: the same kernels, without ~500 launches per call.
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ class TopologyProjection(nn.Module):
 
     def __init__(self, edges: Tensor, rest_lengths: Tensor, num_vertices: int, smoothing_iterations: int = 4,
                  smoothing_weight: float = 0.35, constraint_iterations: int = 32, min_ratio: float = 0.9,
-                 max_ratio: float = 1.1) -> None:
+                 max_ratio: float = 1.1, cuda_graph: bool = True) -> None:
         super().__init__()
         edges = torch.as_tensor(edges, dtype=torch.long)
         rest_lengths = torch.as_tensor(rest_lengths, dtype=torch.float32, device=edges.device)
@@ -44,6 +46,8 @@ class TopologyProjection(nn.Module):
         ones = torch.ones(edges.numel(), device=edges.device)
         degree = torch.zeros(num_vertices, device=edges.device).index_add_(0, edges.flatten(), ones)
         self.register_buffer("degree", degree, persistent=False)  # (N,) rest-edge neighbours
+        self.cuda_graph = cuda_graph
+        self._graphs: dict[tuple, tuple[torch.cuda.CUDAGraph, Tensor, Tensor, Tensor]] = {}
 
     def _neighbour_sum(self, d: Tensor) -> Tensor:
         """Sum over rest-edge neighbours of a per-vertex field d (B, N, K)."""
@@ -75,12 +79,41 @@ class TopologyProjection(nn.Module):
             x = x + correction / count.clamp(min=1)[..., None]
         return x
 
-    def forward(self, x_prev: Tensor, x_pred: Tensor) -> Tensor:
-        """Eq. projection_finetune: X_hat_{t+dt} (B, N, 3) [m] from X_hat_t = x_prev and the network's X_tilde = x_pred.
-
-        Computed (and returned) in at least float32, also under autocast.
-        """
+    def project(self, x_prev: Tensor, x_pred: Tensor) -> Tensor:
+        """The eager (reference, differentiable) projection; see forward."""
         dtype = torch.promote_types(x_pred.dtype, torch.float32)
         x_prev, x_pred = x_prev.to(dtype), x_pred.to(dtype)
         x = x_prev + self.smooth(x_pred - x_prev)
         return self.constrain(x)
+
+    def _graphed(self, x_prev: Tensor, x_pred: Tensor) -> Tensor:
+        """project() through a CUDA graph captured on the first call with this shape and dtype."""
+        dtype = torch.promote_types(x_pred.dtype, torch.float32)
+        key = (tuple(x_pred.shape), dtype, x_pred.device)
+        if key not in self._graphs:
+            static_prev = x_prev.detach().to(dtype).clone()
+            static_pred = x_pred.detach().to(dtype).clone()
+            side = torch.cuda.Stream(x_pred.device)
+            side.wait_stream(torch.cuda.current_stream(x_pred.device))
+            with torch.cuda.stream(side), torch.autocast("cuda", enabled=False):
+                self.project(static_prev, static_pred)  # warm-up outside the capture (allocator, kernels)
+            torch.cuda.current_stream(x_pred.device).wait_stream(side)
+            graph = torch.cuda.CUDAGraph()
+            with torch.cuda.graph(graph), torch.autocast("cuda", enabled=False):
+                static_out = self.project(static_prev, static_pred)
+            self._graphs[key] = (graph, static_prev, static_pred, static_out)
+        graph, static_prev, static_pred, static_out = self._graphs[key]
+        static_prev.copy_(x_prev)
+        static_pred.copy_(x_pred)
+        graph.replay()
+        return static_out.clone()
+
+    def forward(self, x_prev: Tensor, x_pred: Tensor) -> Tensor:
+        """Eq. projection_finetune: X_hat_{t+dt} (B, N, 3) [m] from X_hat_t = x_prev and the network's X_tilde = x_pred.
+
+        Computed (and returned) in at least float32, also under autocast. Without gradients on CUDA (and
+        cuda_graph set) it replays a captured CUDA graph of the same computation.
+        """
+        if self.cuda_graph and x_pred.is_cuda and not torch.is_grad_enabled():
+            return self._graphed(x_prev, x_pred)
+        return self.project(x_prev, x_pred)

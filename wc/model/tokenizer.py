@@ -13,6 +13,7 @@ import torch
 from torch import Tensor, nn
 
 from wc.model.conv import ContinuousConv
+from wc.model.neighbor_cache import NeighborCache, PairQuery, search_pairs
 from wc.model.neighbors import nearest_index, radius_pairs
 
 TOKEN_DIM = 192
@@ -48,7 +49,7 @@ def _check_inputs(
     env_v: Tensor,
     env_attr: Tensor,
 ) -> None:
-    """Raise ValueError naming the argument for wrong shapes or a non-finite object state."""
+    """Raise ValueError naming the argument for wrong shapes (no host sync; values: `_state_flags`)."""
     if x.ndim != 3 or x.shape[2] != 3:
         raise ValueError(f"x must be (B, N, 3), got {tuple(x.shape)}")
     b, n, _ = x.shape
@@ -71,12 +72,22 @@ def _check_inputs(
             raise ValueError(
                 f"{name}_attr must be (B={b}, M={sx.shape[1]}, {SAMPLE_ATTRIBUTES}) = [tag, normal], got {tuple(sa.shape)}"
             )
-    # One host sync per step; a NaN state otherwise surfaces far downstream as a NaN loss.
-    if not bool(torch.isfinite(x).all()):
+
+
+def _state_flags(x: Tensor, v: Tensor, ti: Tensor, tj: Tensor, n: int) -> Tensor:
+    """(3,) int64 on device: [x finite, v finite, topology indices in [0, n)]; read back by `_raise_on_flags`."""
+    in_range = ((torch.stack((ti.min(), tj.min())) >= 0).all() & (torch.stack((ti.max(), tj.max())) < n).all()
+                if ti.numel() > 0 else torch.ones((), dtype=torch.bool, device=ti.device))
+    return torch.stack((torch.isfinite(x).all(), torch.isfinite(v).all(), in_range.to(x.device))).long()
+
+
+def _raise_on_flags(flags: list[int], n: int) -> None:
+    """ValueError for a non-finite object state or out-of-range topology pairs (flags from `_state_flags`)."""
+    if not flags[0]:
         raise ValueError("non-finite x in the object state")
-    if not bool(torch.isfinite(v).all()):
+    if not flags[1]:
         raise ValueError("non-finite v in the object state")
-    if ti.numel() > 0 and (int(ti.min()) < 0 or int(tj.min()) < 0 or int(ti.max()) >= n or int(tj.max()) >= n):
+    if not flags[2]:
         raise ValueError(f"topology pair indices ti, tj must lie in [0, N = {n})")
 
 
@@ -145,6 +156,7 @@ class ContactTokenizer(nn.Module):
         env_x: Tensor,
         env_v: Tensor,
         env_attr: Tensor,
+        neighbors: NeighborCache | None = None,
     ) -> Tensor:
         """Vertex tokens (B, N, 192).
 
@@ -152,7 +164,9 @@ class ContactTokenizer(nn.Module):
         (N,) is only validated (the topology pairs already keep to one object, and spatial contact
         crosses objects by design); ti, tj (P,) from `topology_pairs` (one scene's indices);
         ctrl_* / env_* the controllable / environment samples at t + dt: x, v (B, M, 3),
-        attr (B, M, 4) = [tag, unit normal].
+        attr (B, M, 4) = [tag, unit normal]. neighbors: a Verlet-skin cache for the three searched sets
+        (same pairs as fresh searches, so the same tokens); None searches afresh. One host sync per call
+        when no set needs a new search.
         """
         _check_inputs(x, v, attributes, object_index, ti, tj, ctrl_x, ctrl_v, ctrl_attr, env_x, env_v, env_attr)
         b, n, _ = x.shape
@@ -164,10 +178,16 @@ class ContactTokenizer(nn.Module):
         ones = xf.new_ones(b * n, 1)
         u = torch.cat((ones, v.reshape(b * n, 3) / vs, c), dim=1)  # (B*N, 7) = [1, v_j, c_j]
         frame = self.offset_transform
-
-        # Spatial contact: Euclidean neighbours across all predicted objects of the scene.
-        qi, pj = radius_pairs(xf, xf, self.spatial_radius, query_batch=scene, point_batch=scene, exclude_self=True)
-        g_s = self.spatial(xf, xf, u, qi, pj, frame)
+        env_xf, env_u = self._samples(env_x, env_v, env_attr, xf.dtype)
+        ctrl_xf, ctrl_u = self._samples(ctrl_x, ctrl_v, ctrl_attr, xf.dtype)
+        queries = {  # spatial contact: Euclidean neighbours across all predicted objects of the scene
+            "spatial": PairQuery(xf, xf, self.spatial_radius, scene, scene, b, exclude_self=True),
+            "environment": PairQuery(xf, env_xf, self.environment_radius, scene, _scene_ids(b, env_x.shape[1], device), b),
+            "controllable": PairQuery(xf, ctrl_xf, self.controllable_radius, scene,
+                                      _scene_ids(b, ctrl_x.shape[1], device), b),
+        }
+        pairs = search_pairs(queries, neighbors, _state_flags(x, v, ti, tj, n), lambda f: _raise_on_flags(f, n))
+        g_s = self.spatial(xf, xf, u, *pairs["spatial"], frame)
 
         # Topological contact: rest-uv neighbours, offset per scene, r from current positions.
         shift = (torch.arange(b, device=device) * n)[:, None]
@@ -176,22 +196,18 @@ class ContactTokenizer(nn.Module):
         g_t = self.topology(xf, xf, u, ti_b, tj_b, frame)
 
         # Boundary contact with the prescribed samples at t + dt.
-        g_e = self._boundary(self.environment, self.environment_radius, xf, scene, env_x, env_v, env_attr)
-        g_c = self._boundary(self.controllable, self.controllable_radius, xf, scene, ctrl_x, ctrl_v, ctrl_attr)
+        g_e = self.environment(xf, env_xf, env_u, *pairs["environment"], frame)
+        g_c = self.controllable(xf, ctrl_xf, ctrl_u, *pairs["controllable"], frame)
 
         direct = self.direct(u)  # [1, v_i, c_i]
         h = torch.cat((g_s, g_t, g_e, g_c, direct), dim=1)
         return h.reshape(b, n, self.out_dim)
 
-    def _boundary(
-        self, conv: ContinuousConv, radius: float, xf: Tensor, scene: Tensor, sx: Tensor, sv: Tensor, sattr: Tensor
-    ) -> Tensor:
-        """g^C or g^E (B*N, C): samples within `radius` of each vertex, u_j = [v_j / vs, attr_j]."""
+    def _samples(self, sx: Tensor, sv: Tensor, sattr: Tensor, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
+        """Flattened sample positions (B*M, 3) and features u_j = [v_j / vs, attr_j] (B*M, 7) for g^C or g^E."""
         b, m, _ = sx.shape
-        sxf = sx.reshape(b * m, 3).to(xf.dtype)
-        u = torch.cat((sv.reshape(b * m, 3).to(xf.dtype) / self.velocity_scale, sattr.reshape(b * m, 4).to(xf.dtype)), dim=1)
-        qi, pj = radius_pairs(xf, sxf, radius, query_batch=scene, point_batch=_scene_ids(b, m, xf.device))
-        return conv(xf, sxf, u, qi, pj, self.offset_transform)
+        u = torch.cat((sv.reshape(b * m, 3).to(dtype) / self.velocity_scale, sattr.reshape(b * m, 4).to(dtype)), dim=1)
+        return sx.reshape(b * m, 3).to(dtype), u
 
 
 class LinearTokenizer(nn.Module):
@@ -223,10 +239,12 @@ class LinearTokenizer(nn.Module):
         env_x: Tensor,
         env_v: Tensor,
         env_attr: Tensor,
+        neighbors: NeighborCache | None = None,
     ) -> Tensor:
-        """Vertex tokens (B, N, out_dim); arguments as ContactTokenizer.forward."""
+        """Vertex tokens (B, N, out_dim); arguments as ContactTokenizer.forward (neighbors is unused)."""
         _check_inputs(x, v, attributes, object_index, ti, tj, ctrl_x, ctrl_v, ctrl_attr, env_x, env_v, env_attr)
         b, n, _ = x.shape
+        _raise_on_flags(_state_flags(x, v, ti, tj, n).tolist(), n)
         c = attributes.to(x.dtype).expand(b, n, 3)
         feats = [x, v / self.velocity_scale, c]
         for sx, sv, sa in ((ctrl_x, ctrl_v, ctrl_attr), (env_x, env_v, env_attr)):

@@ -10,6 +10,7 @@ from wc.model.decoder import GlobalTokenDecoder
 from wc.model.encoder import HierarchicalEncoder
 from wc.model.head import StateHead
 from wc.model.layout import Samples, SceneLayout
+from wc.model.neighbor_cache import NeighborCache
 from wc.model.attention import RoPE3D
 from wc.model.projection import TopologyProjection
 from wc.model.tokenizer import ContactTokenizer, LinearTokenizer, topology_pairs
@@ -56,14 +57,16 @@ class WorldContact(nn.Module):
         return layout.cache[key]
 
     def forward(self, x: torch.Tensor, v: torch.Tensor, layout: SceneLayout, controllable: Samples,
-                environment: Samples) -> tuple[torch.Tensor, torch.Tensor]:
-        """(Δx, Δv), each (B, N, 3), from x, v (B, N, 3) at t and the prescribed samples at t+Δt."""
+                environment: Samples, neighbors: NeighborCache | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """(Δx, Δv), each (B, N, 3), from x, v (B, N, 3) at t and the prescribed samples at t+Δt.
+
+        neighbors: a Verlet-skin neighbour cache (same result, fewer searches), e.g. `neighbor_cache(layout)`."""
         if x.ndim != 3 or x.shape[1] != layout.num_vertices or x.shape[-1] != 3:
             raise ValueError(f"x must be (B, {layout.num_vertices}, 3) for objects {layout.objects}, got {tuple(x.shape)}")
         ti, tj = self._topology(layout)
         h = self.tokenizer(x, v, layout.attributes, layout.object_index, ti, tj,  # Eq. tokenizer
                            controllable.x, controllable.v, controllable.attributes,
-                           environment.x, environment.v, environment.attributes)
+                           environment.x, environment.v, environment.attributes, neighbors=neighbors)
         global_h, global_x, _ = self.encoder(h, x)  # Eqs. encoder_attention, merge
         h_d = self.decoder(h, x, global_h, global_x)  # Eqs. decoder_self, decoder_cross
         out = self.head(h_d).float()  # Eq. state_head
@@ -80,13 +83,27 @@ class WorldContact(nn.Module):
                 min_ratio=edge_ratio[0], max_ratio=edge_ratio[1]).to(layout.edges.device)
         return layout.cache[key]
 
+    def neighbor_cache(self, layout: SceneLayout, skin_m: float | None = None) -> NeighborCache | None:
+        """The layout's Verlet-skin neighbour cache (skin default: config.neighbor_skin_m); None when the skin
+        is 0 or the tokenizer searches no neighbours. Cached on the layout: its reuse test makes it valid for
+        any state, and an entry is replaced when the batch shape changes."""
+        skin = self.config.neighbor_skin_m if skin_m is None else float(skin_m)
+        if skin < 0:
+            raise ValueError(f"neighbour skin must be >= 0 m, got {skin}")
+        if skin == 0 or self.config.tokenizer != "contact":
+            return None
+        key = f"neighbor_cache@{skin}"
+        if key not in layout.cache:
+            layout.cache[key] = NeighborCache(skin)
+        return layout.cache[key]
+
 
 def advance(model: WorldContact, x: torch.Tensor, v: torch.Tensor, layout: SceneLayout, controllable: Samples,
-            environment: Samples, dt: float,
-            projection: TopologyProjection | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+            environment: Samples, dt: float, projection: TopologyProjection | None = None,
+            neighbors: NeighborCache | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """One predicted frame: V̂ = V + ΔV and X̂ = X + ΔX ("direct") or X + Δt·V̂ + ΔX ("integrate");
     with P, X̂ = P(X̃) and V̂ = (X̂_{t+Δt} − X̂_t)/Δt (Eq. projection_finetune)."""
-    dx, dv = model(x, v, layout, controllable, environment)
+    dx, dv = model(x, v, layout, controllable, environment, neighbors=neighbors)
     v_next = v + dv
     x_next = x + dx + dt * v_next if model.config.position_update == "integrate" else x + dx
     if projection is None:

@@ -1,0 +1,191 @@
+"""The Newton source simulator as an evaluated method: replay of a freshly simulated tiny episode, cheaper settings,
+the coarse-resolution state maps, the params checks and its rows on the speed-accuracy chart."""
+
+from __future__ import annotations
+
+import copy
+import csv
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import torch
+
+from wc.config import ParamsError, load_section, read_params
+from wc.data.store import TrajectoryStore, TrajectoryWriter
+from wc.dynamics import ObjectState
+from wc.eval.cases import CaseReader
+from wc.eval.config import EvaluateConfig, MethodSpec
+from wc.eval.newton_predictor import NewtonPredictor, coarse_scene_config
+from wc.eval.stage import case_actions, evaluate
+from wc.scene.config import SceneConfig
+from wc.scene.resample import ResolutionMap, surface_map
+from wc.scene.scene import build_scene
+from wc.sim.config import SimConfig
+from wc.sim.newton_sim import NewtonSimulator
+from wc.train.data import Phase, episode_phases
+
+FRAMES = 7
+CPU = torch.device("cpu")
+
+
+@pytest.fixture(scope="module")
+def params() -> dict[str, Any]:
+    """params.yaml at a tiny size: a 200-vertex bag, 10 solver steps per 0.04 s frame."""
+    p = read_params("params.yaml")
+    p["scene"]["bag"]["target_vertices"] = 200
+    p["sim"].update(substeps=10, dt_s=0.004, iterations=4)
+    return p
+
+
+@pytest.fixture(scope="module")
+def configs(params) -> tuple[SceneConfig, SimConfig]:
+    return load_section(params, "scene", SceneConfig), load_section(params, "sim", SimConfig)
+
+
+@pytest.fixture(scope="module")
+def store_path(tmp_path_factory, configs) -> Path:
+    """One test episode simulated by Newton: the bag dropped 3 cm onto the table, the robot at home."""
+    scene_cfg, sim_cfg = configs
+    scene = build_scene(scene_cfg, ["bag"])
+    x0 = scene.objects["bag"].vertices + np.float32([0.0, 0.0, 0.03])
+    action = np.repeat(scene.home_action()[None], FRAMES, axis=0)
+    x, v = NewtonSimulator(scene, sim_cfg).rollout(ObjectState(x0, np.zeros_like(x0)), action)
+    path = tmp_path_factory.mktemp("newton") / "drop.zarr"
+    with TrajectoryWriter(path, dt=sim_cfg.frame_dt_s, substeps=sim_cfg.substeps, params_hash="test",
+                          created_by="tests", object_order=["bag"], link_names=list(scene.link_names),
+                          env_names=list(scene.env_names), chunk_frames=8) as w:
+        w.add_scene(scene)
+        w.add_episode(x, v, action, scene.link_poses(action), np.repeat(scene.env_poses()[None], FRAMES, axis=0),
+                      episode_id="ep_000000", task="bag_drop", seed=0, cell=0, speed=0.0, amplitude=0.0,
+                      split="test", accepted=True, first_failure=None, source="simulator")
+    return path
+
+
+def _case(store_path: Path, scene_cfg: SceneConfig, start: int = 0):
+    store = TrajectoryStore(store_path)
+    phase = episode_phases(store, "ep_000000")[0]
+    case = CaseReader(store, scene_cfg, 0.02, CPU).case(Phase(phase.episode, start, phase.stop, phase.layout), FRAMES)
+    return store, case, case_actions(store, case)
+
+
+def _timed(predictor: NewtonPredictor, case, actions, dt: float) -> tuple[np.ndarray, float]:
+    """Positions (S, N, 3) and the fastest of two timed rollouts, s per step (after the untimed prepare)."""
+    predictor.prepare(case, actions)
+    best, x = float("inf"), None
+    for _ in range(2):
+        t0 = time.perf_counter()
+        x, _ = predictor.rollout_case(case, actions, dt)
+        best = min(best, (time.perf_counter() - t0) / case.steps)
+    return x, best
+
+
+def _mse(x: np.ndarray, truth: np.ndarray) -> float:
+    return float(np.square(x - truth).sum(-1).mean())
+
+
+def test_reference_replay_reproduces_and_a_coarser_setting_is_faster_and_worse(store_path, configs):
+    scene_cfg, sim_cfg = configs
+    store, case, actions = _case(store_path, scene_cfg)
+    truth = case.x[1:].astype(np.float64)
+    ref_x, ref_s = _timed(NewtonPredictor(MethodSpec("newton"), scene_cfg, sim_cfg, CPU), case, actions, store.dt)
+    assert ref_x.shape == truth.shape
+    assert _mse(ref_x, truth) < 1e-10  # same simulator, same state, same actions: its own determinism only
+    cheap_x, cheap_s = _timed(NewtonPredictor(MethodSpec("newton", substeps=2), scene_cfg, sim_cfg, CPU), case,
+                              actions, store.dt)
+    assert np.isfinite(cheap_x).all()
+    assert cheap_s < ref_s  # 2 instead of 10 solver steps per frame
+    fallen = _mse(case.x[:1].astype(np.float64).repeat(case.steps, 0), truth)
+    assert 1e-10 < _mse(cheap_x, truth) < fallen  # a different answer, still a falling bag
+
+    # replayed from a later stored frame (the solver's history lost) it stays within 1 mm RMS
+    store, late, late_actions = _case(store_path, scene_cfg, start=2)
+    x, _ = NewtonPredictor(MethodSpec("newton"), scene_cfg, sim_cfg, CPU).rollout_case(late, late_actions, store.dt)
+    assert _mse(x, late.x[1:]) < 1e-6
+
+
+def test_half_resolution_runs_on_the_coarse_mesh_and_answers_in_the_stored_vertices(store_path, configs):
+    scene_cfg, sim_cfg = configs
+    store, case, actions = _case(store_path, scene_cfg)
+    predictor = NewtonPredictor(MethodSpec("newton", cloth_vertices_scale=0.5), scene_cfg, sim_cfg, CPU)
+    x, v = predictor.rollout_case(case, actions, store.dt)
+    (replay,) = predictor._replays.values()
+    assert replay.sim.scene.num_vertices < 0.6 * case.scene.num_vertices
+    assert x.shape == v.shape == case.x[1:].shape and np.isfinite(x).all()
+    assert 0 < _mse(x, case.x[1:]) < _mse(case.x[:1].repeat(case.steps, 0), case.x[1:])
+
+
+def test_resolution_map_round_trips_rest_positions(configs):
+    scene_cfg, _ = configs
+    fine = build_scene(scene_cfg, ["bag", "sphere"])
+    coarse = build_scene(coarse_scene_config(scene_cfg, fine, 0.5), ["bag", "sphere"])
+    bag, small = fine.objects["bag"], coarse.objects["bag"]
+    assert len(small.vertices) < len(bag.vertices)
+    identity = surface_map(bag.vertices, bag.faces, bag.vertices)  # a mesh onto its own vertices
+    np.testing.assert_allclose(identity.apply(bag.vertices), bag.vertices, atol=1e-12)
+    m = ResolutionMap(fine, coarse)
+    rest_fine = np.concatenate([o.vertices for o in fine.objects.values()]).astype(np.float64)
+    rest_coarse = np.concatenate([o.vertices for o in coarse.objects.values()]).astype(np.float64)
+    up = m.to_fine(rest_coarse)
+    # fine vertices on the coarse surface (the flat bottom, z = 0) come back exactly; the rest within a chord
+    bottom = np.flatnonzero(np.abs(rest_fine[: len(bag.vertices), 2]) < 1e-7)
+    assert len(bottom) > 10
+    np.testing.assert_allclose(up[bottom], rest_fine[bottom], atol=1e-7)
+    assert np.abs(up - rest_fine).max() < 0.01
+    rigid = fine.vertex_slices()["sphere"]
+    np.testing.assert_array_equal(up[rigid], rest_fine[rigid])  # rigid objects are copied
+    # linear: an affine motion of the rest shape maps to the same motion of the mapped points
+    rot = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    np.testing.assert_allclose(m.to_fine(rest_coarse @ rot.T + 0.1), up @ rot.T + 0.1, atol=1e-12)
+    np.testing.assert_allclose(m.to_coarse(rest_fine)[coarse.vertex_slices()["bag"]],
+                               rest_coarse[coarse.vertex_slices()["bag"]], atol=0.01)
+    with pytest.raises(ValueError, match="state"):
+        m.to_fine(rest_fine)
+
+
+@pytest.mark.parametrize("entry, key", [
+    ({"kind": "newton", "iterations": 0}, "iterations"),
+    ({"kind": "newton", "substeps": 0}, "substeps"),
+    ({"kind": "newton", "cloth_vertices_scale": 0.0}, "cloth_vertices_scale"),
+    ({"kind": "zero_motion", "substeps": 5}, "substeps"),
+    ({"kind": "newton", "path": "models/x"}, "path"),
+    ({"kind": "newton", "dt_s": 0.001}, "dt_s"),
+])
+def test_bad_newton_method_params_are_named(params, entry, key):
+    p = copy.deepcopy(params)
+    p["evaluate"]["methods"] = {"sim_bad": entry}
+    with pytest.raises(ParamsError, match=rf"evaluate\.methods\.sim_bad.*{key}"):
+        load_section(p, "evaluate", EvaluateConfig)
+
+
+def test_bad_chart_max_cases_is_named(params):
+    p = copy.deepcopy(params)
+    p["evaluate"]["chart_max_cases"] = 0
+    with pytest.raises(ParamsError, match="chart_max_cases"):
+        load_section(p, "evaluate", EvaluateConfig)
+
+
+def test_stage_puts_newton_settings_on_the_chart_only(tmp_path, store_path, params):
+    p = copy.deepcopy(params)
+    p["evaluate"].update(rollout_frames=4, stability_frames=4, chart_max_cases=1, methods={
+        "zero_motion": {"kind": "zero_motion"},
+        "newton_reference": {"kind": "newton"},
+        "newton_iterations_1": {"kind": "newton", "iterations": 1},
+    })
+    out = tmp_path / "reports"
+    r = evaluate(p, store_path, out / "metrics.json", out / "stability.csv", out / "stability.png")
+    assert set(r["methods"]) == {"zero_motion"}  # every held-out rollout: Newton is not there
+    chart = r["speed_accuracy"]
+    assert chart["rollouts"] == 1 and set(chart["methods"]) == {"zero_motion", "newton_reference", "newton_iterations_1"}
+    assert chart["newton"]["newton_iterations_1"]["iterations"] == 1
+    assert chart["newton"]["newton_reference"] == {"iterations": 4, "substeps": 10, "dt_s": pytest.approx(0.004),
+                                                   "cloth_vertices_scale": 1.0}
+    rows = {row["method"]: row for row in csv.DictReader((out / "speed_accuracy.csv").open())}
+    assert set(rows) == set(chart["methods"]) and rows["newton_reference"]["kind"] == "newton"
+    assert float(rows["newton_reference"]["position_mse_m2"]) < 1e-10 < float(rows["zero_motion"]["position_mse_m2"])
+    for name, row in rows.items():
+        assert float(row["simulated_s_per_wall_s"]) == pytest.approx(0.04 / chart["methods"][name]["s_per_step"])
+    assert {row["method"] for row in csv.DictReader((out / "stability.csv").open())} == {"ground_truth", "zero_motion"}
+    assert (out / "speed_accuracy.png").stat().st_size > 10_000

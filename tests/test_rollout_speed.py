@@ -1,0 +1,62 @@
+"""benchmarks.rollout_speed end to end on CPU at tiny size: synthetic store, no Newton, ratios from a file."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from benchmarks.rollout_speed import main
+from tests.synthetic_store import write_synthetic_store
+from wc.config import read_params
+
+TINY = ["--params", "params.yaml", "--set", "model.encoder_levels=1", "--set", "model.decoder_layers=1"]
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory) -> str:
+    path = tmp_path_factory.mktemp("s") / "s.zarr"
+    return str(write_synthetic_store(path, read_params("params.yaml"), [("fall", "test")], frames=6))
+
+
+def test_rollout_speed_runs_and_reports(tmp_path, store) -> None:
+    reference = tmp_path / "sim_speed.json"
+    reference.write_text(json.dumps({"settings": [
+        {"bag_vertices": 300, "worlds": 1, "simulated_s_per_wall_s": 0.05, "simulated_s_per_wall_s_aggregate": 0.05},
+        {"bag_vertices": 300, "worlds": 4, "simulated_s_per_wall_s": 0.02, "simulated_s_per_wall_s_aggregate": 0.08},
+        {"bag_vertices": 20000, "worlds": 1, "simulated_s_per_wall_s": 9.0, "simulated_s_per_wall_s_aggregate": 9.0}]}))
+    main([*TINY, "--store", store, "--frames", "4", "--repeats", "1", "--batches", "2", "--skins", "0.002,0.5",
+          "--train-window", "3", "--train-steps", "1", "--profile-frames", "2", "--skip-newton",
+          "--newton-reference", str(reference), "--out-dir", str(tmp_path), "--tag", "t"])
+    report = json.loads((tmp_path / "rollout_speed_t.json").read_text())
+    single = {r["variant"]: r for r in report["single"]}
+    assert len(single) == 4 and all("ms_per_step_median" in r for r in single.values()), single
+    projected = [name for name in single if name.endswith("+ topology projection P")]
+    assert len(projected) == 1 and single[projected[0]]["finite"]  # the projection-stage rollout, timed apart
+    projected_row = single.pop(projected[0])
+    assert projected_row["simulated_s_per_wall_s"] > 0
+    ref = single["fp32 reference"]
+    for name, row in single.items():
+        assert row["finite"] and row["position_mse_vs_fp32_reference_m2"] == 0.0, name  # reuse is exact
+        assert row["simulated_s_per_wall_s"] > 0
+    wide = single["fp32 + neighbour reuse, skin 500 mm"]
+    assert wide["neighbour_searches"]["spatial"] == 1 and wide["neighbour_reuses"]["spatial"] == 3
+    assert ref["neighbour_searches"] == "every step"
+    assert {r["batch"] for r in report["batched"]} == {2} and all("ms_per_step_median" in r for r in report["batched"])
+    assert "whole step" in report["other"]["profile"]["ms_per_step_median"]
+    assert report["other"]["training"]["s_per_step_median"] > 0 and report["other"]["projection"]["ms"] > 0
+    assert report["other"]["projection"]["max_abs_difference_m"] == 0.0  # CPU: the eager projection itself
+    assert report["newton"] == []
+    ratios = report["newton_for_ratios"]  # the closest vertex count of the reference file, marked as not this run
+    assert ratios["single_s_per_s"] == 0.05 and ratios["multi_aggregate_s_per_s"] == 0.08
+    assert "not this process" in ratios["source"]
+    md = (tmp_path / "rollout_speed_t.md").read_text()
+    assert "Issue 8 targets" in md and "fp32 + neighbour reuse, skin 2 mm" in md
+
+
+def test_rollout_speed_budget_skips_rows(tmp_path, store) -> None:
+    main([*TINY, "--store", store, "--frames", "2", "--repeats", "1", "--batches", "2", "--skins", "0.01", "--train-window", "0",
+          "--profile-frames", "0", "--skip-newton", "--budget-s", "0", "--out-dir", str(tmp_path), "--tag", "b"])
+    report = json.loads((tmp_path / "rollout_speed_b.json").read_text())
+    rows = report["single"] + report["batched"]
+    assert rows and all("skipped" in r["error"] for r in rows)
