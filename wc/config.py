@@ -46,17 +46,23 @@ def read_params(path: str | Path, overrides: list[str] | None = None) -> dict[st
         key, sep, raw = item.partition("=")
         if not sep:
             raise ParamsError(f"override {item!r} is not of the form key.sub=value")
-        node = data
-        *parents, leaf = key.split(".")
-        for part in parents:
-            if not isinstance(node.get(part), dict):
-                raise ParamsError(f"override {item!r}: {part!r} is not a section of {path}")
-            node = node[part]
-        if leaf not in node:
-            raise ParamsError(f"override {item!r}: unknown key {key!r} in {path}")
-        node[leaf] = yaml.safe_load(raw)
+        set_dotted(data, key, yaml.safe_load(raw), f"{path}: override {item!r}")
     data["_source"] = str(path)
     return data
+
+
+def set_dotted(params: dict[str, Any], key: str, value: Any, where: str) -> None:
+    """Set params[a][b]...[leaf] = value for key "a.b....leaf"; every section and the leaf must exist already
+    (ParamsError naming `where` and the key otherwise)."""
+    node = params
+    *parents, leaf = key.split(".")
+    for part in parents:
+        if not isinstance(node.get(part), dict):
+            raise ParamsError(f"{where}: {part!r} of {key!r} is not a params section")
+        node = node[part]
+    if leaf not in node:
+        raise ParamsError(f"{where}: unknown key {key!r}")
+    node[leaf] = value
 
 
 def load_section(params: dict[str, Any], name: str, cls: type[T]) -> T:

@@ -32,7 +32,7 @@ from wc.agent.parallel import init_worker
 from wc.agent.planner import CoveragePlanner
 from wc.agent.runner import (build_task_world, episode_seed, execute, judge, layout_attrs, release_frame, reset_batch,
                              store_scene)
-from wc.config import ParamsError, load_section, params_hash
+from wc.config import ParamsError, load_section, params_hash, set_dotted
 from wc.data.store import TrajectoryStore, TrajectoryWriter
 from wc.eval.stress_config import StressConfig
 from wc.scene.config import SceneConfig
@@ -53,15 +53,7 @@ def case_params(params: dict[str, Any], cfg: StressConfig, name: str) -> dict[st
     for where, overrides in (("stress.overrides", cfg.overrides),
                              (f"stress.cases.{name}.overrides", cfg.cases[name].overrides)):
         for key, value in overrides.items():
-            node = out
-            *parents, leaf = key.split(".")
-            for part in parents:
-                if not isinstance(node.get(part), dict):
-                    raise ParamsError(f"{source}: {where}.{key}: {part!r} is not a params section")
-                node = node[part]
-            if leaf not in node:
-                raise ParamsError(f"{source}: {where}.{key}: no such params key to override")
-            node[leaf] = copy.deepcopy(value)
+            set_dotted(out, key, copy.deepcopy(value), f"{source}: {where}.{key}")
     return out
 
 
