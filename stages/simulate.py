@@ -21,9 +21,8 @@ from tqdm import tqdm
 from wc.agent.lift_plot import write_lift_curves
 from wc.agent.memory import FailureMemory
 from wc.agent.parallel import TaskResult, init_worker, run_task
-from wc.agent.runner import AgentConfig, store_scene
+from wc.agent.runner import AgentConfig, simulator_store
 from wc.config import add_params_arguments, load_section, params_hash, read_params
-from wc.data.store import TrajectoryWriter
 from wc.reports import environment_info, write_json_atomic
 from wc.scene.config import SceneConfig
 from wc.sim.config import SimConfig
@@ -94,7 +93,6 @@ def simulate(params: dict[str, Any], out: str | Path = "data/source/raw.zarr",
     agent_cfg = load_section(params, "agent", AgentConfig)
     load_section(params, "validate", ValidateConfig)  # bad input fails before any output
     tasks = [get_task(name, params) for name in agent_cfg.tasks]
-    union = store_scene(scene_cfg, tasks)
     phash = params_hash(output_params(params), SECTIONS)
     keys = {t.name: task_key(params, t.name) for t in tasks}
     if agent_cfg.workers > 1 and len(set(keys.values())) < len(keys):
@@ -105,12 +103,9 @@ def simulate(params: dict[str, Any], out: str | Path = "data/source/raw.zarr",
     frames = steps = 0
     curves = {}
     started = time.perf_counter()
-    with (TrajectoryWriter(out, dt=sim_cfg.frame_dt_s, substeps=sim_cfg.substeps, params_hash=phash,
-                           created_by="stages.simulate", object_order=list(union.objects),
-                           link_names=list(union.link_names), env_names=list(union.env_names)) as writer,
+    with (simulator_store(out, scene_cfg, sim_cfg, tasks, phash, "stages.simulate") as (writer, union),
           closing(task_results(params, keys, outcomes, agent_cfg.workers)) as results,
           tqdm(results, total=len(tasks), desc="simulate", unit="task") as bar):
-        writer.add_scene(union, {name: getattr(sim_cfg, name).__dict__ for name in union.objects})
         for result in bar:
             failures: dict[str, int] = {}
             accepted = task_frames = 0

@@ -9,12 +9,15 @@ logged with its frame and fed back to the planner, which remembers it across run
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from wc.agent.planner import Planner
+from wc.data.store import TrajectoryWriter
 from wc.dynamics import ObjectState
 from wc.scene.config import SceneConfig
 from wc.scene.scene import OBJECT_KINDS, Scene, build_scene
@@ -103,6 +106,20 @@ def store_scene(scene_cfg: SceneConfig, tasks: list[Task]) -> Scene:
     for task in tasks:
         held.update(task.held())
     return build_scene(scene_cfg, objects, held={n: held[n] for n in OBJECT_KINDS if n in held})
+
+
+@contextmanager
+def simulator_store(path: str | Path, scene_cfg: SceneConfig, sim_cfg: SimConfig, tasks: list[Task],
+                    params_hash: str, created_by: str) -> Iterator[tuple[TrajectoryWriter, Scene]]:
+    """``with simulator_store(...) as (writer, scene)``: an atomic trajectory store for episodes these tasks
+    simulate, its scene (`store_scene`, each object with its simulated material) already added; frame dt and
+    substeps of sim_cfg."""
+    union = store_scene(scene_cfg, tasks)
+    with TrajectoryWriter(path, dt=sim_cfg.frame_dt_s, substeps=sim_cfg.substeps, params_hash=params_hash,
+                          created_by=created_by, object_order=list(union.objects),
+                          link_names=list(union.link_names), env_names=list(union.env_names)) as writer:
+        writer.add_scene(union, {name: getattr(sim_cfg, name).__dict__ for name in union.objects})
+        yield writer, union
 
 
 def episode_seed(stage_seed: int, task_index: int, episode_index: int) -> int:

@@ -586,8 +586,12 @@ class TrajectoryStore:
 
     def episode_layout(self, eid: str) -> dict[str, slice]:
         """Rows of each present object in the episode's x / v."""
+        return self.object_layout(self.episode_objects(eid))
+
+    def object_layout(self, objects: Sequence[str]) -> dict[str, slice]:
+        """Rows of each of `objects` in an x / v holding these objects in this order."""
         out, start = {}, 0
-        for name in self.episode_objects(eid):
+        for name in objects:
             n = self.objects[name].rest_positions.shape[0]
             out[name] = slice(start, start + n)
             start += n

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -74,21 +73,11 @@ class Rollout:
         return out
 
 
-def _object_rows(store: TrajectoryStore, objects: Sequence[str]) -> dict[str, slice]:
-    """Rows of each object in x of a phase with these objects (in this order)."""
-    out, start = {}, 0
-    for name in objects:
-        n = len(store.objects[name].rest_positions)
-        out[name] = slice(start, start + n)
-        start += n
-    return out
-
-
 def _carried_start(store: TrajectoryStore, case: Case, previous: Rollout) -> Case:
     """`case` with frame 0 taken from the previous phase's prediction for the objects it predicted."""
     prev_case, prev_x, prev_v = previous.phases[-1]
-    before = _object_rows(store, prev_case.phase.layout[0])
-    now = _object_rows(store, case.phase.layout[0])
+    before = store.object_layout(prev_case.phase.layout[0])
+    now = store.object_layout(case.phase.layout[0])
     x, v = case.x.copy(), case.v.copy()
     for name, rows in now.items():
         if name in before:

@@ -31,9 +31,9 @@ from tqdm import tqdm
 from wc.agent.parallel import init_worker
 from wc.agent.planner import CoveragePlanner
 from wc.agent.runner import (build_task_world, episode_seed, execute, judge, layout_attrs, release_frame, reset_batch,
-                             store_scene)
+                             simulator_store)
 from wc.config import ParamsError, load_section, params_hash, set_dotted
-from wc.data.store import TrajectoryStore, TrajectoryWriter
+from wc.data.store import TrajectoryStore
 from wc.eval.stress_config import StressConfig
 from wc.scene.config import SceneConfig
 from wc.sim.config import SimConfig
@@ -166,13 +166,10 @@ def ground_truth(params: dict[str, Any], cfg: StressConfig, path: str | Path) ->
         return store, {"reused": True, "store": str(path), "params_hash": phash}
     scene_cfg = load_section(params, "scene", SceneConfig)
     sim_cfg = load_section(params, "sim", SimConfig)
-    union = store_scene(scene_cfg, [get_task(cfg.case_task(n), params) for n in cfg.cases])
+    tasks = [get_task(cfg.case_task(n), params) for n in cfg.cases]
     cases: dict[str, Any] = {}
     started = time.perf_counter()
-    with TrajectoryWriter(path, dt=sim_cfg.frame_dt_s, substeps=sim_cfg.substeps, params_hash=phash,
-                          created_by="stages.stress", object_order=list(union.objects),
-                          link_names=list(union.link_names), env_names=list(union.env_names)) as writer:
-        writer.add_scene(union, {n: getattr(sim_cfg, n).__dict__ for n in union.objects})
+    with simulator_store(path, scene_cfg, sim_cfg, tasks, phash, "stages.stress") as (writer, _):
         for name, result in zip(cfg.cases, case_results(params, cfg)):
             ids = [writer.add_episode(*e["arrays"], **e["attrs"]) for e in result["episodes"]]
             cases[name] = {"task": cfg.case_task(name), "episodes": ids, "attempts": result["attempts"],

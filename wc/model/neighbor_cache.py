@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
-from wc.model.neighbors import radius_pairs
+from wc.model.neighbors import radius_pairs, within_radius
 
 _SKIN_MARGIN = 1.0e-3  # reuse only while the displacement bound is below skin * (1 - margin): rounding guard
 
@@ -62,9 +62,7 @@ def exact_pairs(q: PairQuery) -> tuple[Tensor, Tensor]:
 
 def _within(q: PairQuery, qi: Tensor, pj: Tensor) -> Tensor:
     """(P,) bool: the candidates within q.radius, the same float32 expression as `radius_pairs`'s filter."""
-    q32 = q.query.detach().to(torch.float32)
-    p32 = q.points.detach().to(torch.float32)
-    return (p32[pj] - q32[qi]).square().sum(-1) < float(q.radius) ** 2
+    return within_radius(q.query.detach().to(torch.float32), q.points.detach().to(torch.float32), qi, pj, q.radius)
 
 
 def _max_deviation(d: Tensor, batch: Tensor, shift: Tensor, scenes: int) -> Tensor:

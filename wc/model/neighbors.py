@@ -84,6 +84,12 @@ def grid_dim(num_points: int) -> int:
     return int(min(_MAX_GRID_DIM, max(_MIN_GRID_DIM, round(2.0 * num_points ** (1.0 / 3.0)))))
 
 
+def within_radius(query: Tensor, points: Tensor, qi: Tensor, pj: Tensor, radius: float) -> Tensor:
+    """(P,) bool: pairs with ((points[pj] - query[qi])**2).sum(-1) < radius**2 on float32 query (N, 3) and
+    points (M, 3) [m]: the exact test of every neighbour search here (`radius_pairs` and its cached reuse)."""
+    return (points[pj] - query[qi]).square().sum(-1) < float(radius) ** 2
+
+
 def _check_points(name: str, t: Tensor) -> None:
     if t.ndim != 2 or t.shape[1] != 3:
         raise ValueError(f"{name} must be (n, 3), got {tuple(t.shape)}")
@@ -182,8 +188,7 @@ def radius_pairs(
 
     # Exact test in torch (see _CANDIDATE_SLACK), then a deterministic order: the grid visits
     # cells in hash order and the group filter already holds.
-    d2 = (p32[pj] - q32[qi]).square().sum(-1)
-    keep = d2 < float(radius) ** 2
+    keep = within_radius(q32, p32, qi, pj, radius)
     qi, pj = qi[keep], pj[keep]
     order = torch.argsort(qi * m + pj)
     return qi[order], pj[order]
