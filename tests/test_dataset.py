@@ -167,6 +167,8 @@ def test_card_and_atomic_output(built: dict[str, Any]) -> None:
     for name in ("source", "expanded"):
         card = (built["out"] / name / "README.md").read_text()
         assert "right grasp and lift" in card and "action[k] == observation.state[k+1]" in card
+        render_step = "3. The `render` stage" if name == "expanded" else "2. The `render` stage"
+        assert render_step in card  # the steps are numbered in order whether or not expand added episodes
         assert built["report"]["params_hash"] in card
     assert sorted(p.name for p in built["out"].iterdir()) == ["expanded", "source"]  # no temporary left behind
 
