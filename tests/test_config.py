@@ -105,3 +105,23 @@ def test_params_hash_tracks_content():
     b = read_params(ROOT / "params.yaml", ["sim.iterations=3"])
     assert params_hash(a, ["sim"]) != params_hash(b, ["sim"])
     assert params_hash(a, ["scene"]) == params_hash(b, ["scene"])
+
+
+@pytest.mark.parametrize("file", ["params.yaml", "params/gpu.yaml"])
+def test_every_ablation_changes_one_valid_model_key(file):
+    """dvc.yaml's train_ablation stage runs `stages.train --set <value>` for each `ablations` entry: each value
+    must be one override of a model key, giving a model config that validates and differs from the full model's."""
+    from wc.model.config import ModelConfig
+    params = read_params(ROOT / file)
+    assert params["ablations"], "no ablation to train"
+    full = load_section(params, "model", ModelConfig)
+    for name, override in params["ablations"].items():
+        key, _, _ = override.partition("=")
+        assert key.startswith("model.") and key.count(".") == 1, (name, override)
+        ablated = load_section(read_params(ROOT / file, [override]), "model", ModelConfig)
+        assert ablated != full, name
+
+
+def test_gpu_params_train_both_paper_ablations():
+    assert set(read_params(ROOT / "params/gpu.yaml")["ablations"]) == {"no_contact_tokenizer",
+                                                                       "no_hierarchical_compression"}
