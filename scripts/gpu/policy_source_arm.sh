@@ -1,0 +1,29 @@
+#!/bin/bash
+# GPU issue-7 source arm (one machine, calls back to back): PHASE=A simulate 25 wanted lift_handle episodes, validate,
+# render 224^2; PHASE=B LeRobot dataset + ACT (params/policy_act_gpu.yaml); PHASE=C 20 closed-loop trials. Needs the
+# packed warp/newton/zarr and lerobot wheels on PYTHONPATH (README: GPU machine); state lives in /tmp/run
+cd "$(dirname "$0")/../.."
+R="--set render.device=cuda --set render.width=224 --set render.height=224"
+case "$PHASE" in
+A)
+  mkdir -p /tmp/run
+  timeout 300 python -m stages.simulate --params params.yaml --set sim.device=cuda --set sim.worlds=8 --set agent.workers=1 \
+    --set "agent.tasks=[lift_handle]" --set agent.episodes_per_task=25 --set agent.max_attempts_per_task=96 \
+    --out /tmp/run/raw.zarr --report /tmp/run/simulate.json --memory /tmp/run/memory.json 2>&1 | tr '\r' '\n' | tail -2
+  python -m stages.validate --params params.yaml --raw /tmp/run/raw.zarr --out /tmp/run/lift25.zarr --report $OUT/validate.json 2>&1 | tail -1
+  timeout 200 python -m stages.render --params params.yaml $R --inputs /tmp/run/lift25.zarr --outs /tmp/run/rendered.zarr \
+    --report $OUT/render.json --sheet $OUT/render_sheet.png 2>&1 | tr '\r' '\n' | tail -2
+  ;;
+B)
+  timeout 200 python -m stages.dataset --params params.yaml --set dataset.include_expanded=false --set dataset.encoder_threads=0 \
+    --source-trajectories /tmp/run/lift25.zarr --source-frames /tmp/run/rendered.zarr --out /tmp/run/lerobot --report $OUT/dataset.json 2>&1 | tr '\r' '\n' | tail -2
+  timeout ${FT_TIMEOUT:-540} python -m stages.finetune --params params.yaml --policy params/policy_act_gpu.yaml --set "policy.datasets=[source]" \
+    --set policy.steps=${STEPS:-3500} --set policy.decay_steps=${STEPS:-3500} --data-root /tmp/run/lerobot --out-root /tmp/run/policy --report $OUT/finetune.json 2>&1 | tr '\r' '\n' | grep -v "it/s\]$" | tail -4
+  ;;
+C)
+  timeout ${EV_TIMEOUT:-560} python -m stages.policy_eval --params params.yaml $R --set policy_eval.device=cuda --set policy_eval.trials=${TRIALS:-20} \
+    --set policy_eval.videos=2 --set "policy.datasets=[source]" --models-root /tmp/run/policy --report $OUT/policy.json \
+    --videos $OUT/videos --table $OUT/policy_success.csv --plot $OUT/policy_success.png 2>&1 | tr '\r' '\n' | tail -4
+  ;;
+esac
+ls $OUT
