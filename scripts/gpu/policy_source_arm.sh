@@ -6,11 +6,7 @@ cd "$(dirname "$0")/../.."
 R="--set render.device=cuda --set render.width=224 --set render.height=224"
 case "$PHASE" in
 A)
-  mkdir -p /tmp/run
-  timeout 300 python -m stages.simulate --params params.yaml --set sim.device=cuda --set sim.worlds=8 --set agent.workers=1 \
-    --set "agent.tasks=[lift_handle]" --set agent.episodes_per_task=25 --set agent.max_attempts_per_task=96 \
-    --out /tmp/run/raw.zarr --report /tmp/run/simulate.json --memory /tmp/run/memory.json 2>&1 | tr '\r' '\n' | tail -2
-  python -m stages.validate --params params.yaml --raw /tmp/run/raw.zarr --out /tmp/run/lift25.zarr --report $OUT/validate.json 2>&1 | tail -1
+  SIM_TIMEOUT=300 bash scripts/gpu/lift_handle_25.sh
   timeout 200 python -m stages.render --params params.yaml $R --inputs /tmp/run/lift25.zarr --outs /tmp/run/rendered.zarr \
     --report $OUT/render.json --sheet $OUT/render_sheet.png 2>&1 | tr '\r' '\n' | tail -2
   ;;

@@ -8,8 +8,8 @@ timeout ${TRAIN_TIMEOUT:-540} python -m stages.train --params params.yaml --set 
   --set train.base.steps=${BASE:-1000} --set train.base.warmup_steps=100 --set train.projection.steps=${PROJ:-250} \
   --set train.projection.warmup_steps=25 --set train.eval_every_steps=250 --set train.checkpoint_every_steps=250 --set train.val_windows=64 \
   --out /tmp/gpumodel --report $OUT/train_gpu.json --curves $OUT/train_gpu_loss.csv 2>&1 | tr '\r' '\n' | grep -v "it/s\]$" | tail -40
-echo "rc=$?"
+echo "train rc=${PIPESTATUS[0]}"
 mkdir -p $OUT/model
 if [ -d /tmp/gpumodel ]; then d=/tmp/gpumodel; else d=/tmp/gpumodel.partial; fi
-cp $d/*.json $OUT/model/ ; cp $d/model.safetensors $d/projection.safetensors $d/base.safetensors $OUT/model/ 2>/dev/null
+cp $d/*.json $d/model.safetensors $d/projection.safetensors $d/base.safetensors $OUT/model/  # a cut run lacks model.*: cp says which
 ls -la $OUT/model
