@@ -148,21 +148,66 @@ class ContinuousConv(nn.Module):
         if offset_transform is not None and offset_transform.shape != (3, 3):
             raise ValueError(f"offset_transform must be (3, 3), got {tuple(offset_transform.shape)}")
 
-        dtype = torch.float64 if query_pos.dtype == torch.float64 else torch.float32
+        dtype = _geometry_dtype(query_pos)
         with torch.autocast(device_type=query_pos.device.type, enabled=False):
             r = neighbor_pos.to(dtype)[pj] - query_pos.to(dtype)[qi]  # (P, 3) [m]
-            importance = poly6_window(r.square().sum(-1) / self.radius**2)  # (P,)
-            if offset_transform is not None:
-                r = r @ offset_transform.to(dtype).T
-            cube = ball_to_cube_volume_preserving(r / self.radius)  # (P, 3) in [-1, 1]
-            grid_coord = (cube + 1.0) * (0.5 * (k - 1))  # align_corners: [-1, 1] -> [0, K-1]
+            importance, grid_coord = self._kernel_coordinates(r, offset_transform)
             cell, weight = trilinear_corners(grid_coord, k)  # (P, 8)
             feats = neighbor_feats.to(dtype)[pj]  # (P, Cin)
             values = (weight * importance[:, None])[:, :, None] * feats[:, None, :]  # (P, 8, Cin)
             acc = torch.zeros(n * k**3, self.in_channels, dtype=dtype, device=query_pos.device)
             acc.index_add_(0, (qi[:, None] * k**3 + cell).reshape(-1), values.reshape(-1, self.in_channels))
-        # One matmul for all queries; autocast may run it in bf16, the sum over pairs stays fp32.
-        out = acc.reshape(n, k**3 * self.in_channels) @ self.kernel.reshape(-1, self.out_channels).to(acc.dtype)
+        return self._apply_kernel(acc.reshape(n, k**3 * self.in_channels))
+
+    def forward_padded(self, query_pos: Tensor, neighbor_pos: Tensor, neighbor_feats: Tensor, index: Tensor,
+                       valid: Tensor, offset_transform: Tensor | None = None) -> Tensor:
+        """`forward` over fixed-K padded neighbour slots: index (N, K) into the neighbours, valid (N, K) bool.
+
+        Static shapes and no scatter: each slot's K^3 trilinear weights are the product of per-axis hat functions
+        max(0, 1 - |g - node|) (equal to the corner weights of `trilinear_corners` inside the grid), and the sum
+        over slots is one batched matmul. Padding slots contribute exactly zero. Returns (N, Cout).
+        """
+        n, k = query_pos.shape[0], self.kernel_size
+        if index.ndim != 2 or index.shape[0] != n or valid.shape != index.shape:
+            raise ValueError(f"index and valid must both be (N={n}, K), got {tuple(index.shape)}, {tuple(valid.shape)}")
+        if neighbor_feats.shape != (neighbor_pos.shape[0], self.in_channels):
+            raise ValueError(
+                f"neighbor_feats must be ({neighbor_pos.shape[0]}, {self.in_channels}), got {tuple(neighbor_feats.shape)}"
+            )
+        if offset_transform is not None and offset_transform.shape != (3, 3):
+            raise ValueError(f"offset_transform must be (3, 3), got {tuple(offset_transform.shape)}")
+        dtype = _geometry_dtype(query_pos)
+        with torch.autocast(device_type=query_pos.device.type, enabled=False):
+            r = neighbor_pos.to(dtype)[index] - query_pos.to(dtype)[:, None]  # (N, K, 3) [m]
+            importance, grid_coord = self._kernel_coordinates(r, offset_transform)
+            importance = importance * valid.to(dtype)
+            nodes = torch.arange(k, device=r.device, dtype=dtype)
+            # clamped to the grid like `trilinear_corners` (a transformed offset may leave the unit ball)
+            g = grid_coord.clamp(0.0, k - 1.0)
+            hat = (1.0 - (g[..., None] - nodes).abs()).clamp_min(0.0)  # (N, K, 3, k): x, y, z axes
+            wx, wy, wz = hat.unbind(-2)
+            cells = (wz[..., :, None, None] * wy[..., None, :, None] * wx[..., None, None, :]).flatten(-3)  # [z, y, x]
+            cells = cells * importance[..., None]  # (N, K, k^3)
+            feats = neighbor_feats.to(dtype)[index]  # (N, K, Cin)
+            acc = torch.bmm(cells.transpose(1, 2), feats)  # (N, k^3, Cin): sum over slots
+        return self._apply_kernel(acc.reshape(n, k**3 * self.in_channels))
+
+    def _kernel_coordinates(self, r: Tensor, offset_transform: Tensor | None) -> tuple[Tensor, Tensor]:
+        """Window importance (...,) and kernel grid coordinates (..., 3) in [0, K-1] of offsets r (..., 3) [m]."""
+        importance = poly6_window(r.square().sum(-1) / self.radius**2)
+        if offset_transform is not None:
+            r = r @ offset_transform.to(r.dtype).T
+        cube = ball_to_cube_volume_preserving(r / self.radius)  # in [-1, 1]^3
+        return importance, (cube + 1.0) * (0.5 * (self.kernel_size - 1))  # align_corners: [-1, 1] -> [0, K-1]
+
+    def _apply_kernel(self, acc: Tensor) -> Tensor:
+        """One matmul for all queries (N, K^3 Cin) -> (N, Cout); autocast may run it in bf16, the sums stay fp32."""
+        out = acc @ self.kernel.reshape(-1, self.out_channels).to(acc.dtype)
         if self.bias is not None:
             out = out + self.bias
         return out
+
+
+def _geometry_dtype(t: Tensor) -> torch.dtype:
+    """float64 for float64 positions, else float32 (geometry never runs in reduced precision)."""
+    return torch.float64 if t.dtype == torch.float64 else torch.float32

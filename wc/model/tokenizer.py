@@ -13,6 +13,7 @@ import torch
 from torch import Tensor, nn
 
 from wc.model.conv import ContinuousConv
+from wc.model.fixed_neighbors import FixedNeighbors
 from wc.model.neighbor_cache import NeighborCache, PairQuery, search_pairs
 from wc.model.neighbors import nearest_index, radius_pairs
 
@@ -156,7 +157,7 @@ class ContactTokenizer(nn.Module):
         env_x: Tensor,
         env_v: Tensor,
         env_attr: Tensor,
-        neighbors: NeighborCache | None = None,
+        neighbors: NeighborCache | FixedNeighbors | None = None,
     ) -> Tensor:
         """Vertex tokens (B, N, 192).
 
@@ -166,7 +167,8 @@ class ContactTokenizer(nn.Module):
         ctrl_* / env_* the controllable / environment samples at t + dt: x, v (B, M, 3),
         attr (B, M, 4) = [tag, unit normal]. neighbors: a Verlet-skin cache for the three searched sets
         (same pairs as fresh searches, so the same tokens); None searches afresh. One host sync per call
-        when no set needs a new search.
+        when no set needs a new search. With `FixedNeighbors` (the static-shape path) the same sums run over
+        padded neighbour slots with no host sync and no value checks (overflow goes to its counter).
         """
         _check_inputs(x, v, attributes, object_index, ti, tj, ctrl_x, ctrl_v, ctrl_attr, env_x, env_v, env_attr)
         b, n, _ = x.shape
@@ -186,18 +188,25 @@ class ContactTokenizer(nn.Module):
             "controllable": PairQuery(xf, ctrl_xf, self.controllable_radius, scene,
                                       _scene_ids(b, ctrl_x.shape[1], device), b),
         }
-        pairs = search_pairs(queries, neighbors, _state_flags(x, v, ti, tj, n), lambda f: _raise_on_flags(f, n))
-        g_s = self.spatial(xf, xf, u, *pairs["spatial"], frame)
-
-        # Topological contact: rest-uv neighbours, offset per scene, r from current positions.
-        shift = (torch.arange(b, device=device) * n)[:, None]
-        ti_b = (ti.to(device)[None, :] + shift).reshape(-1)
-        tj_b = (tj.to(device)[None, :] + shift).reshape(-1)
-        g_t = self.topology(xf, xf, u, ti_b, tj_b, frame)
-
-        # Boundary contact with the prescribed samples at t + dt.
-        g_e = self.environment(xf, env_xf, env_u, *pairs["environment"], frame)
-        g_c = self.controllable(xf, ctrl_xf, ctrl_u, *pairs["controllable"], frame)
+        if isinstance(neighbors, FixedNeighbors):
+            found = neighbors.search(queries)
+            g_s = self.spatial.forward_padded(xf, xf, u, found["spatial"].index, found["spatial"].valid, frame)
+            g_t = self.topology.forward_padded(xf, xf, u, *neighbors.topology(b), frame)
+            g_e = self.environment.forward_padded(xf, env_xf, env_u, found["environment"].index,
+                                                  found["environment"].valid, frame)
+            g_c = self.controllable.forward_padded(xf, ctrl_xf, ctrl_u, found["controllable"].index,
+                                                   found["controllable"].valid, frame)
+        else:
+            pairs = search_pairs(queries, neighbors, _state_flags(x, v, ti, tj, n), lambda f: _raise_on_flags(f, n))
+            g_s = self.spatial(xf, xf, u, *pairs["spatial"], frame)
+            # Topological contact: rest-uv neighbours, offset per scene, r from current positions.
+            shift = (torch.arange(b, device=device) * n)[:, None]
+            ti_b = (ti.to(device)[None, :] + shift).reshape(-1)
+            tj_b = (tj.to(device)[None, :] + shift).reshape(-1)
+            g_t = self.topology(xf, xf, u, ti_b, tj_b, frame)
+            # Boundary contact with the prescribed samples at t + dt.
+            g_e = self.environment(xf, env_xf, env_u, *pairs["environment"], frame)
+            g_c = self.controllable(xf, ctrl_xf, ctrl_u, *pairs["controllable"], frame)
 
         direct = self.direct(u)  # [1, v_i, c_i]
         h = torch.cat((g_s, g_t, g_e, g_c, direct), dim=1)
@@ -241,24 +250,31 @@ class LinearTokenizer(nn.Module):
         env_attr: Tensor,
         neighbors: NeighborCache | None = None,
     ) -> Tensor:
-        """Vertex tokens (B, N, out_dim); arguments as ContactTokenizer.forward (neighbors is unused)."""
+        """Vertex tokens (B, N, out_dim); arguments as ContactTokenizer.forward. neighbors: only whether it is
+        `FixedNeighbors` matters (the static-shape path: nearest samples by a batched distance matrix, no sync)."""
         _check_inputs(x, v, attributes, object_index, ti, tj, ctrl_x, ctrl_v, ctrl_attr, env_x, env_v, env_attr)
         b, n, _ = x.shape
-        _raise_on_flags(_state_flags(x, v, ti, tj, n).tolist(), n)
+        static = isinstance(neighbors, FixedNeighbors)
+        if not static:
+            _raise_on_flags(_state_flags(x, v, ti, tj, n).tolist(), n)
         c = attributes.to(x.dtype).expand(b, n, 3)
         feats = [x, v / self.velocity_scale, c]
         for sx, sv, sa in ((ctrl_x, ctrl_v, ctrl_attr), (env_x, env_v, env_attr)):
-            feats.append(self._nearest(x, sx, sv, sa))
+            feats.append(self._nearest(x, sx, sv, sa, static))
         return self.proj(torch.cat(feats, dim=-1))
 
-    def _nearest(self, x: Tensor, sx: Tensor, sv: Tensor, sa: Tensor) -> Tensor:
+    def _nearest(self, x: Tensor, sx: Tensor, sv: Tensor, sa: Tensor, static: bool) -> Tensor:
         """(B, N, 10) = [x_j - x_i, v_j / vs, attr_j] of each vertex's nearest sample j (zeros if none)."""
         b, n, _ = x.shape
         m = sx.shape[1]
         if m == 0:
             return x.new_zeros(b, n, 3 + 3 + SAMPLE_ATTRIBUTES)
         xf = x.reshape(b * n, 3)
-        j = nearest_index(xf, sx.reshape(b * m, 3), _scene_ids(b, n, x.device), _scene_ids(b, m, x.device))
+        if static:  # the distances of `nearest_index`, per scene at once; argmin keeps the lowest index on ties
+            d = torch.cdist(x.detach().float(), sx.detach().float(), compute_mode="donot_use_mm_for_euclid_dist")
+            j = (d.argmin(dim=-1) + (torch.arange(b, device=x.device) * m)[:, None]).reshape(b * n)
+        else:
+            j = nearest_index(xf, sx.reshape(b * m, 3), _scene_ids(b, n, x.device), _scene_ids(b, m, x.device))
         sxf = sx.reshape(b * m, 3).to(x.dtype)[j]
         svf = sv.reshape(b * m, 3).to(x.dtype)[j] / self.velocity_scale
         saf = sa.reshape(b * m, SAMPLE_ATTRIBUTES).to(x.dtype)[j]

@@ -8,9 +8,11 @@ from torch import nn
 from wc.model.config import ModelConfig
 from wc.model.decoder import GlobalTokenDecoder
 from wc.model.encoder import HierarchicalEncoder
+from wc.model.fixed_neighbors import FixedNeighbors
 from wc.model.head import StateHead
 from wc.model.layout import Samples, SceneLayout
 from wc.model.neighbor_cache import NeighborCache
+from wc.model.padded_neighbors import NeighborCapacity
 from wc.model.attention import RoPE3D
 from wc.model.projection import TopologyProjection
 from wc.model.tokenizer import ContactTokenizer, LinearTokenizer, topology_pairs
@@ -57,10 +59,12 @@ class WorldContact(nn.Module):
         return layout.cache[key]
 
     def forward(self, x: torch.Tensor, v: torch.Tensor, layout: SceneLayout, controllable: Samples,
-                environment: Samples, neighbors: NeighborCache | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+                environment: Samples, neighbors: NeighborCache | FixedNeighbors | None = None
+                ) -> tuple[torch.Tensor, torch.Tensor]:
         """(Δx, Δv), each (B, N, 3), from x, v (B, N, 3) at t and the prescribed samples at t+Δt.
 
-        neighbors: a Verlet-skin neighbour cache (same result, fewer searches), e.g. `neighbor_cache(layout)`."""
+        neighbors: a Verlet-skin neighbour cache (same result, fewer searches), e.g. `neighbor_cache(layout)`,
+        or the static-shape search `fixed_neighbors(layout, capacities)` (same result within capacity, no sync)."""
         if x.ndim != 3 or x.shape[1] != layout.num_vertices or x.shape[-1] != 3:
             raise ValueError(f"x must be (B, {layout.num_vertices}, 3) for objects {layout.objects}, got {tuple(x.shape)}")
         ti, tj = self._topology(layout)
@@ -83,6 +87,14 @@ class WorldContact(nn.Module):
                 min_ratio=edge_ratio[0], max_ratio=edge_ratio[1]).to(layout.edges.device)
         return layout.cache[key]
 
+    def fixed_neighbors(self, layout: SceneLayout, capacities: dict[str, NeighborCapacity]) -> FixedNeighbors:
+        """The layout's static-shape neighbour search with these capacities (cached on the layout per capacities)."""
+        key = f"fixed_neighbors@{sorted(capacities.items())}"
+        if key not in layout.cache:
+            ti, tj = self._topology(layout)
+            layout.cache[key] = FixedNeighbors.for_topology(capacities, ti, tj, layout.num_vertices)
+        return layout.cache[key]
+
     def neighbor_cache(self, layout: SceneLayout, skin_m: float | None = None) -> NeighborCache | None:
         """The layout's Verlet-skin neighbour cache (skin default: config.neighbor_skin_m); None when the skin
         is 0 or the tokenizer searches no neighbours. Cached on the layout: its reuse test makes it valid for
@@ -100,7 +112,7 @@ class WorldContact(nn.Module):
 
 def advance(model: WorldContact, x: torch.Tensor, v: torch.Tensor, layout: SceneLayout, controllable: Samples,
             environment: Samples, dt: float, projection: TopologyProjection | None = None,
-            neighbors: NeighborCache | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+            neighbors: NeighborCache | FixedNeighbors | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """One predicted frame: V̂ = V + ΔV and X̂ = X + ΔX ("direct") or X + Δt·V̂ + ΔX ("integrate");
     with P, X̂ = P(X̃) and V̂ = (X̂_{t+Δt} − X̂_t)/Δt (Eq. projection_finetune)."""
     dx, dv = model(x, v, layout, controllable, environment, neighbors=neighbors)

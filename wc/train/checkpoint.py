@@ -58,4 +58,23 @@ def save_state(path: Path, state: dict[str, Any]) -> None:
 
 
 def load_state(path: Path) -> dict[str, Any]:
-    return torch.load(path, map_location="cpu", weights_only=False)
+    """A `save_state` file; a clear error when it is unreadable (e.g. cut short by a lost job)."""
+    try:
+        return torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as err:  # torch raises several types for truncated or foreign files
+        raise ValueError(f"{path}: unreadable training state ({err}); delete it to start afresh") from err
+
+
+def rng_states(device: torch.device) -> dict[str, Any]:
+    """The random streams a training run draws from (torch CPU, and the device's CUDA generator)."""
+    states: dict[str, Any] = {"torch": torch.get_rng_state()}
+    if device.type == "cuda":
+        states["cuda"] = torch.cuda.get_rng_state(device)
+    return states
+
+
+def restore_rng_states(states: dict[str, Any], device: torch.device) -> None:
+    """Inverse of `rng_states` (a CUDA state is restored only on a CUDA device)."""
+    torch.set_rng_state(states["torch"])
+    if device.type == "cuda" and "cuda" in states:
+        torch.cuda.set_rng_state(states["cuda"], device)

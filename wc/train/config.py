@@ -49,7 +49,16 @@ class TrainConfig:
     stats_episodes: int = 32  # episodes read to set the input/output scales
     checkpoint_every_steps: int = 100
     autocast_bf16: bool = False  # CUDA only: bf16 autocast of the network, fp32 state accumulation
-    num_workers: int = 0  # DataLoader workers
+    tf32: bool = False  # CUDA only: TF32 matrix products outside autocast
+    num_workers: int = 0  # DataLoader workers (reference path only)
+    # The static-shape path (wc/train/static_step.py): training frames resident on the device, windows gathered by
+    # index, fixed-K neighbour slots (capacities from the data with this headroom, grown on overflow), batched
+    # validation; `compile` (torch.compile of each frame step) and `cuda_graph` (CUDA only) build on it.
+    static: bool = False
+    compile: bool = False
+    cuda_graph: bool = False
+    neighbor_headroom: float = 1.5
+    max_minutes: float = 0.0  # stop cleanly with a complete checkpoint after this wall time (0 = no limit); --resume goes on
     device: str = "cpu"  # cpu | cuda | cuda:k (torchrun: each process takes cuda:LOCAL_RANK)
     seed: int = 0
 
@@ -63,6 +72,12 @@ class TrainConfig:
         lo, hi = self.edge_ratio
         if not 0 < lo <= 1 <= hi:
             raise ValueError(f"edge_ratio must satisfy 0 < lo <= 1 <= hi, got {self.edge_ratio}")
+        if (self.compile or self.cuda_graph) and not self.static:
+            raise ValueError("train.compile and train.cuda_graph need the static-shape path (train.static: true)")
+        if self.neighbor_headroom < 1.0:
+            raise ValueError(f"neighbor_headroom must be >= 1, got {self.neighbor_headroom}")
+        if self.max_minutes < 0:
+            raise ValueError(f"max_minutes must be >= 0 (0 = no limit), got {self.max_minutes}")
         for name in ("eval_every_steps", "val_windows", "holdout_block_frames", "rollout_frames", "stats_episodes", "checkpoint_every_steps"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1")

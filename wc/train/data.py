@@ -148,6 +148,13 @@ class LayoutBatchSampler(torch.utils.data.Sampler[list[int]]):
         self.batch_size = batch_size
         self.rng = np.random.default_rng([seed, rank])
 
+    def state(self) -> dict:
+        """The sampler's position in its stream (checkpointed for an exact resume)."""
+        return self.rng.bit_generator.state
+
+    def set_state(self, state: dict) -> None:
+        self.rng.bit_generator.state = state
+
     def __iter__(self):  # noqa: ANN204 - infinite iterator
         while True:
             group = self.groups[self.rng.choice(len(self.groups), p=self.weights)]

@@ -25,16 +25,20 @@ from tqdm import tqdm
 
 from wc.data.store import TrajectoryStore
 from wc.model.config import ModelConfig
+from wc.model.fixed_neighbors import FixedNeighbors, capacities_from_dict, capacities_to_dict
 from wc.model.layout import SceneLayout, scene_layout
-from wc.model.rollout import rollout
+from wc.model.rollout import Step, rollout
 from wc.model.worldcontact import WorldContact
 from wc.train import distributed
-from wc.train.checkpoint import load_state, save_state, save_weights
+from wc.train.capacity import data_capacities
+from wc.train.checkpoint import load_state, restore_rng_states, rng_states, save_state, save_weights
 from wc.train.config import TrainConfig
 from wc.train.data import (LayoutBatchSampler, LayoutKey, Phase, Scales, Window, WindowDataset, data_scales,
                            phases_of, split_blocks, windows_of)
 from wc.train.evaluation import rollout_error, segment_loss, validation_losses
+from wc.train.resident import ResidentWindows
 from wc.train.schedule import learning_rate
+from wc.train.static_step import StaticTrainer, StepSettings, make_optimizer, set_learning_rate
 
 
 @dataclass
@@ -42,6 +46,7 @@ class TrainData:
     """Which windows train, which validate, and the data scales."""
 
     train_windows: list[Window]
+    train_phases: list[Phase]
     val_windows: list[Window]  # fixed, seeded subset
     val_phases: list[Phase]  # held-out rollouts
     scales: Scales
@@ -66,7 +71,7 @@ def prepare_data(store: TrajectoryStore, cfg: TrainConfig) -> TrainData:
         raise ValueError(f"{store.path}: {len(train_windows)} train and {len(val_all)} validation windows of "
                          f"{cfg.window} frames; need at least one of each")
     pick = np.random.default_rng(cfg.seed).permutation(len(val_all))[: cfg.val_windows]
-    return TrainData(train_windows, [val_all[i] for i in sorted(pick)], val_phases,
+    return TrainData(train_windows, train_phases, [val_all[i] for i in sorted(pick)], val_phases,
                      data_scales(store, train_phases, cfg.stats_episodes), validation)
 
 
@@ -78,8 +83,9 @@ class SegmentRollout(nn.Module):
         self.model = model
 
     def forward(self, layout: SceneLayout, x0: torch.Tensor, v0: torch.Tensor, poses: torch.Tensor, dt: float,
-                projection: nn.Module | None) -> tuple[torch.Tensor, torch.Tensor]:
-        return rollout(self.model, layout, x0, v0, poses, dt, projection)
+                projection: nn.Module | None, neighbors: FixedNeighbors | None = None,
+                step: Step | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        return rollout(self.model, layout, x0, v0, poses, dt, projection, neighbors=neighbors, step=step)
 
 
 def _layouts(store: TrajectoryStore, model_cfg: ModelConfig, device: torch.device):  # noqa: ANN202
@@ -92,25 +98,76 @@ def _layouts(store: TrajectoryStore, model_cfg: ModelConfig, device: torch.devic
     return layout_for
 
 
+class ReferenceSteps:
+    """The reference path: windows read from the store through a DataLoader, pair-list neighbours, eager."""
+
+    def __init__(self, store_path: str | Path, data: TrainData, sampler: LayoutBatchSampler, runner: nn.Module,
+                 optimizer: torch.optim.Optimizer, cfg: TrainConfig, dt: float, device: torch.device,
+                 layout_for) -> None:  # noqa: ANN001
+        self.dataset = WindowDataset(store_path, data.train_windows, cfg.window)
+        self.loader = iter(torch.utils.data.DataLoader(self.dataset, batch_sampler=sampler,
+                                                       num_workers=cfg.num_workers))
+        self.runner, self.optimizer, self.cfg, self.dt, self.device = runner, optimizer, cfg, dt, device
+        self.layout_for = layout_for
+
+    def step(self, projector, step_number: int) -> float:  # noqa: ANN001
+        batch = next(self.loader)
+        layout = self.layout_for(self.dataset.layout_keys[int(batch["layout"][0])])
+        x, v, poses = (batch[k].to(self.device) for k in ("x", "v", "poses"))
+        loss = optimisation_step(self.runner, self.optimizer, layout, x, v, poses, self.dt, projector(layout), self.cfg)
+        if not np.isfinite(loss):
+            raise FloatingPointError(f"train: loss became {loss} at step {step_number}")
+        return loss
+
+
+class StaticSteps:
+    """The static-shape path: resident windows, fixed-K neighbours, optionally compiled and CUDA-graphed."""
+
+    def __init__(self, resident: ResidentWindows, sampler: LayoutBatchSampler, trainer: StaticTrainer,
+                 layout_for) -> None:  # noqa: ANN001
+        self.resident, self.sampler, self.trainer, self.layout_for = resident, iter(sampler), trainer, layout_for
+
+    def step(self, projector, step_number: int) -> float:  # noqa: ANN001
+        li, starts = self.resident.batch_location(next(self.sampler))
+        layout = self.layout_for(self.resident.layout_keys[li])
+        return self.trainer.step(li, layout, self.resident.layouts[li], starts, projector(layout), step_number)
+
+
 def train(store_path: str | Path, out_dir: str | Path, model_cfg: ModelConfig, cfg: TrainConfig, *,
-          resume: bool = False, meta: dict[str, Any] | None = None) -> dict[str, Any]:
-    """Train both stages; returns the report dict (rank 0's; other ranks return {})."""
+          resume: bool = False, meta: dict[str, Any] | None = None, stop_at_step: int | None = None) -> dict[str, Any]:
+    """Train both stages; returns the report dict (rank 0's; other ranks return {}).
+
+    A run stops early, with a complete checkpoint in `<out>.partial/`, after `cfg.max_minutes` of wall time or at
+    `stop_at_step`; it then returns {"complete": False, "step": ...} and `resume=True` continues it to the same
+    result as an uninterrupted run (weights, optimizer, sampler, RNG streams and capacities are all restored).
+    """
     procs = distributed.start(cfg.device)
+    started = time.monotonic()
+    if cfg.tf32 and procs.device.type == "cuda":
+        torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = True
     torch.manual_seed(cfg.seed)
     store = TrajectoryStore(store_path)
     data = prepare_data(store, cfg)
     out_dir, work = Path(out_dir), Path(f"{out_dir}.partial")
     model = WorldContact(model_cfg, **asdict(data.scales)).to(procs.device)
     layout_for = _layouts(store, model_cfg, procs.device)
-    optimizer = torch.optim.AdamW(model.parameters(), lr=cfg.base.start_lr, betas=cfg.betas,
-                                  weight_decay=cfg.weight_decay)
-    step, history, best = 0, [], {"base": float("inf"), "projection": float("inf")}
+    optimizer = make_optimizer(model, cfg, procs.device)
+    sampler = LayoutBatchSampler(data.train_windows, cfg.batch_size, cfg.seed, procs.rank)
+    step, history, recent, best = 0, [], [], {"base": float("inf"), "projection": float("inf")}
+    capacities, measured = None, None
     state_path = work / "last_state.pt"
-    if resume and state_path.is_file():
-        state = load_state(state_path)
+    state = load_state(state_path) if resume and state_path.is_file() else None
+    if state is not None:
         model.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])
         step, history, best = state["step"], state["history"], state["best"]
+        if state.get("capacities"):
+            capacities, measured = capacities_from_dict(state["capacities"]), state.get("measured_neighbors")
+        recent = state.get("recent", [])
+        if procs.main:  # other ranks of a resumed DDP run draw fresh streams
+            sampler.set_state(state["sampler"])
+        else:
+            sampler = LayoutBatchSampler(data.train_windows, cfg.batch_size, cfg.seed + step, procs.rank)
     elif procs.main:
         shutil.rmtree(work, ignore_errors=True)
     distributed.barrier(procs)
@@ -118,53 +175,79 @@ def train(store_path: str | Path, out_dir: str | Path, model_cfg: ModelConfig, c
     runner: nn.Module = SegmentRollout(model)
     if procs.distributed:
         runner = DistributedDataParallel(runner, device_ids=[procs.device] if procs.device.type == "cuda" else None)
-    dataset = WindowDataset(store_path, data.train_windows, cfg.window)
-    sampler = LayoutBatchSampler(data.train_windows, cfg.batch_size, cfg.seed + step, procs.rank)
-    loader = iter(torch.utils.data.DataLoader(dataset, batch_sampler=sampler, num_workers=cfg.num_workers))
+    if cfg.static:
+        if capacities is None:
+            capacities, measured = data_capacities(store, data.train_phases, model_cfg, layout_for,
+                                                   cfg.neighbor_headroom, procs.device)
+        trainer = StaticTrainer(model, runner, optimizer, capacities, StepSettings.of(cfg, store.dt))
+        steps: ReferenceSteps | StaticSteps = StaticSteps(
+            ResidentWindows(store, data.train_windows, cfg.window, procs.device), sampler, trainer, layout_for)
+    else:
+        trainer = None
+        steps = ReferenceSteps(store_path, data, sampler, runner, optimizer, cfg, store.dt, procs.device, layout_for)
+
+    if state is not None and procs.main:  # after the set-up above, which draws (e.g. the DataLoader's seed)
+        restore_rng_states(state["rng"], procs.device)
+
+    def neighbors_for(layout: SceneLayout) -> FixedNeighbors | None:
+        return model.fixed_neighbors(layout, trainer.capacities) if trainer is not None else None
+
+    def checkpoint() -> None:
+        save_weights(model, work / "last.safetensors", {**meta, **static_meta(), "step": step, "stage": stage,
+                                                        "projection": stage == "projection"})
+        save_state(state_path, {"model": model.state_dict(), "optimizer": optimizer.state_dict(), "step": step,
+                                "history": history, "best": best, "recent": recent, "sampler": sampler.state(),
+                                "rng": rng_states(procs.device), **static_meta()})
+
+    def static_meta() -> dict[str, Any]:
+        if trainer is None:
+            return {}
+        return {"capacities": capacities_to_dict(trainer.capacities), "measured_neighbors": measured}
+
     total = cfg.base.steps + cfg.projection.steps
-    step_times, recent = [], []
+    step_times: list[float] = []
     meta = {**(meta or {}), "dt": store.dt, "validation": data.validation}
     bar = tqdm(total=total, initial=step, desc="train", disable=not procs.main)
-    while step < total:
+    stopped = False
+    stage = "base" if step < cfg.base.steps else "projection"
+    while step < total and not stopped:
         stage = "base" if step < cfg.base.steps else "projection"
         schedule = cfg.base if stage == "base" else cfg.projection
         lr = learning_rate(schedule, step if stage == "base" else step - cfg.base.steps)
-        for group in optimizer.param_groups:
-            group["lr"] = lr
+        set_learning_rate(optimizer, lr)
         projector = _projector(model, cfg, stage)
-        batch = next(loader)
-        layout = layout_for(dataset.layout_keys[int(batch["layout"][0])])
-        x, v, poses = (batch[k].to(procs.device) for k in ("x", "v", "poses"))
         t0 = time.perf_counter()
-        recent.append(optimisation_step(runner, optimizer, layout, x, v, poses, store.dt, projector(layout), cfg))
+        recent.append(steps.step(projector, step))
         step_times.append(time.perf_counter() - t0)
-        if not np.isfinite(recent[-1]):
-            raise FloatingPointError(f"train: loss became {recent[-1]} at step {step} ({stage} stage)")
         step += 1
         bar.update(1)
         stage_end = step in (cfg.base.steps, total)
         if procs.main and (step % cfg.eval_every_steps == 0 or stage_end):
             losses = validation_losses(model, store, data.val_windows, cfg.window, layout_for, projector, store.dt,
-                                       cfg.lambda_x, cfg.lambda_v, procs.device)
+                                       cfg.lambda_x, cfg.lambda_v, procs.device, cfg.batch_size, neighbors_for)
             losses.update(rollout_error(model, store, data.val_phases, cfg.rollout_frames, layout_for, projector,
-                                        store.dt, procs.device))
+                                        store.dt, procs.device, neighbors_for))
             history.append({"step": step, "stage": stage, "lr": lr, "train_loss": float(np.mean(recent)), **losses})
             recent = []
             bar.set_postfix(train=f"{history[-1]['train_loss']:.3g}", val=f"{losses['val_loss']:.3g}")
             if losses["val_loss"] < best[stage]:
                 best[stage] = losses["val_loss"]
                 save_weights(model, work / f"{stage}.safetensors",
-                             {**meta, "step": step, "stage": stage, "projection": stage == "projection", **losses})
-        if procs.main and (step % cfg.checkpoint_every_steps == 0 or stage_end):
-            save_weights(model, work / "last.safetensors", {**meta, "step": step, "stage": stage,
-                                                            "projection": stage == "projection"})
-            save_state(state_path, {"model": model.state_dict(), "optimizer": optimizer.state_dict(), "step": step,
-                                    "history": history, "best": best})
+                             {**meta, **static_meta(), "step": step, "stage": stage,
+                              "projection": stage == "projection", **losses})
+        out_of_time = cfg.max_minutes > 0 and time.monotonic() - started > 60.0 * cfg.max_minutes
+        stopped = step < total and (out_of_time or (stop_at_step is not None and step >= stop_at_step))
+        if procs.main and (step % cfg.checkpoint_every_steps == 0 or stage_end or stopped):
+            checkpoint()
     bar.close()
     distributed.barrier(procs)
     report: dict[str, Any] = {}
-    if procs.main:
+    if procs.main and stopped:
+        report = {"complete": False, "step": step, "total_steps": total, "partial": str(work),
+                  "s_per_step_median": statistics.median(step_times) if step_times else float("nan")}
+    elif procs.main:
         report = _finish(model, work, out_dir, cfg, data, history, step_times, procs)
+        report.update(static_meta(), neighbor_growth=trainer.grown if trainer is not None else [])
     distributed.barrier(procs)
     distributed.stop(procs)
     return report
@@ -173,7 +256,8 @@ def train(store_path: str | Path, out_dir: str | Path, model_cfg: ModelConfig, c
 def optimisation_step(runner: nn.Module, optimizer: torch.optim.Optimizer, layout: SceneLayout, x: torch.Tensor,
                       v: torch.Tensor, poses: torch.Tensor, dt: float, projection: nn.Module | None,
                       cfg: TrainConfig) -> float:
-    """One AdamW step on a batch of windows x, v (B, W, N, 3), poses (B, W, P, 7); returns the loss (synchronised)."""
+    """One AdamW step on a batch of windows x, v (B, W, N, 3), poses (B, W, P, 7); returns the loss (synchronised).
+    The reference path (pair-list neighbours, eager)."""
     autocast = cfg.autocast_bf16 and x.device.type == "cuda"
     with torch.autocast("cuda", dtype=torch.bfloat16, enabled=autocast):
         xp, vp = runner(layout, x[:, 0], v[:, 0], poses, dt, projection)
