@@ -132,7 +132,7 @@ def _search_chunk(q32: Tensor, p32: Tensor, grid: _SortedGrid, cells: Tensor, ba
         keep = keep & (j != qi)
     index, valid = _select_sorted(j, keep, m, capacity.max_neighbors)
     query_overflow = (keep.sum(1) > capacity.max_neighbors).sum()
-    return PaddedNeighbors(index, valid, cell_overflow)
+    return PaddedNeighbors(index, valid, query_overflow + cell_overflow)
 
 
 def _check_search(query: Tensor, points: Tensor, radius: float, capacity: NeighborCapacity, query_batch: Tensor,
