@@ -19,7 +19,9 @@ from wc.config import read_params
 from wc.data.store import TrajectoryStore
 from wc.model.config import ModelConfig
 from wc.model.padded_neighbors import NeighborCapacity
-from wc.model.rollout import frame_step
+from torch._dynamo.utils import counters
+
+from wc.model.rollout import compiled, frame_step
 from wc.model.worldcontact import WorldContact
 from wc.config import load_section
 from wc.train.capacity import data_capacities
@@ -129,25 +131,34 @@ def test_overflow_grows_the_capacities_and_reruns_the_batch(setting):
     assert all(c.max_neighbors > 1 for c in trainer.capacities.values())
 
 
-def test_frame_step_compiles_without_a_graph_break(setting):
-    """fullgraph=True fails on any host sync or data-dependent shape in the step, forward or backward."""
+@pytest.mark.slow
+def test_frame_step_compiles_once_for_every_layout_without_a_graph_break(setting):
+    """fullgraph=True fails on any host sync or data-dependent shape in the step; with symbolic sizes one graph serves
+    layouts of different vertex counts (and batch sizes), forward and backward, and matches eager."""
     store, model_cfg, cfg, resident, layout_for, capacities, _ = setting
     torch.manual_seed(3)
     model = WorldContact(replace(model_cfg, dropout=0.0), velocity_m_s=0.3, delta_x_m=0.005, delta_v_m_s=0.1)
-    layout, frames = layout_for(resident.layout_keys[0]), resident.layouts[0]
-    projection = model.projection(layout, constraint_iterations=2)
-    neighbors = model.fixed_neighbors(layout, capacities)
-    x, v, poses = frames.gather(torch.tensor([0, 4]), cfg.window)
-    step = frame_step(model, layout, store.dt, projection, neighbors)
-    compiled = torch.compile(step, fullgraph=True, dynamic=False, backend="aot_eager")
-    results = []
-    for fn in (step, compiled):
-        model.zero_grad(set_to_none=True)
-        xn, vn = fn(x[:, 0], v[:, 0], poses[:, 0], poses[:, 1])
-        (xn.square().sum() + vn.square().sum()).backward()
-        results.append((xn.detach(), _gradients(model)))
-    torch.testing.assert_close(results[1][0], results[0][0], rtol=1e-5, atol=1e-7)
-    assert _relative(_flat(results[1][1]), _flat(results[0][1])) < 1e-5
+    torch._dynamo.reset()
+    sizes = set()
+    two_objects = resident.layout_keys.index(next(k for k in resident.layout_keys if len(k[0]) > 1))
+    for index, batch in ((0, 3), (two_objects, 2)):  # other vertex counts, another batch size (not 1: torch
+        # specialises sizes 0 and 1)
+        layout, frames = layout_for(resident.layout_keys[index]), resident.layouts[index]
+        sizes.add(layout.num_vertices)
+        projection = model.projection(layout, constraint_iterations=2)
+        step = frame_step(model, layout, store.dt, projection, model.fixed_neighbors(layout, capacities))
+        starts = torch.from_numpy(resident.window_start[resident.window_layout == index]).repeat(batch)[:batch]
+        x, v, poses = frames.gather(starts, cfg.window)
+        results = []
+        for fn in (step, compiled(step, backend="aot_eager")):
+            model.zero_grad(set_to_none=True)
+            xn, vn = fn(x[:, 0], v[:, 0], poses[:, 0], poses[:, 1])
+            (xn.square().sum() + vn.square().sum()).backward()
+            results.append((xn.detach(), _gradients(model)))
+        torch.testing.assert_close(results[1][0], results[0][0], rtol=1e-5, atol=1e-7)
+        assert _relative(_flat(results[1][1]), _flat(results[0][1])) < 1e-5
+    assert len(sizes) == 2
+    assert counters["stats"]["unique_graphs"] == 1  # the second layout reused the first one's graph
 
 
 def _static_params(params: dict[str, Any]) -> dict[str, Any]:

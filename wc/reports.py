@@ -28,12 +28,16 @@ def write_json_atomic(path: str | Path, data: dict[str, Any]) -> Path:
 
 def environment_info(device: str) -> dict[str, str]:
     """Device and library versions, recorded beside every timing."""
-    import newton
     import torch
     import warp
 
+    try:
+        import newton
+        newton_version = newton.__version__
+    except ImportError:  # a training-only machine needs no simulator
+        newton_version = "not installed"
     info = {"device": device, "python": platform.python_version(), "torch": torch.__version__,
-            "warp": warp.__version__, "newton": newton.__version__, "cpu": platform.processor() or platform.machine(),
+            "warp": warp.__version__, "newton": newton_version, "cpu": platform.processor() or platform.machine(),
             "cpu_count": str(os.cpu_count())}
     if device.startswith("cuda"):
         info["gpu"] = warp.get_device(device).name

@@ -27,10 +27,14 @@ from wc.eval.cases import Case
 from wc.eval.config import MethodSpec
 from wc.eval.newton_predictor import NewtonPredictor
 from wc.model.layout import SceneLayout
+from wc.model.fixed_neighbors import capacities_from_dict
+from wc.model.padded_neighbors import NeighborCapacity
 from wc.model.rollout import rollout
+from wc.model.static_rollout import StaticRollout
 from wc.model.worldcontact import WorldContact
 from wc.scene.config import SceneConfig
 from wc.sim.config import SimConfig
+from wc.train.capacity import initial_capacities
 from wc.train.checkpoint import load_model
 from wc.train.config import TrainConfig
 
@@ -86,19 +90,25 @@ class WorldContactPredictor:
     """WorldContact (eval mode), with its topology projection when the checkpoint was trained with it.
 
     Steps one frame at a time so that a rollout that turns non-finite stops there (the model refuses
-    non-finite inputs) and the remaining frames are NaN.
+    non-finite inputs) and the remaining frames are NaN. With `train.static` the frames run on the static-shape
+    path (`StaticRollout`: fixed-K neighbours with the checkpoint's capacities, CUDA-graphed on CUDA).
     """
 
-    def __init__(self, model: WorldContact, projection: bool, train_cfg: TrainConfig) -> None:
+    def __init__(self, model: WorldContact, projection: bool, train_cfg: TrainConfig,
+                 capacities: dict[str, NeighborCapacity] | None = None) -> None:
         self.model = model.eval()
         self.projection = projection
         self.train_cfg = train_cfg
+        self.capacities = capacities
+        self._static: StaticRollout | None = None
 
     @classmethod
     def from_dir(cls, path: str | Path, train_cfg: TrainConfig, device: torch.device) -> WorldContactPredictor:
-        """Load <path>/model.safetensors + model.json; the json's "projection" says whether P is applied."""
+        """Load <path>/model.safetensors + model.json; the json's "projection" says whether P is applied, its
+        "capacities" the static neighbour capacities measured in training (if it was trained on that path)."""
         model, config = load_model(Path(path) / CHECKPOINT, device)
-        return cls(model, bool(config.get("projection", False)), train_cfg)
+        capacities = capacities_from_dict(config["capacities"]) if config.get("capacities") else None
+        return cls(model, bool(config.get("projection", False)), train_cfg, capacities)
 
     @property
     def tag_scale(self) -> float:
@@ -111,11 +121,22 @@ class WorldContactPredictor:
         return self.model.projection(layout, c.smoothing_iterations, c.smoothing_weight, c.constraint_iterations,
                                      c.edge_ratio)
 
+    def _static_rollout(self, layout: SceneLayout, x0: torch.Tensor, poses: torch.Tensor, dt: float) -> StaticRollout:
+        if self._static is None or self._static.dt != dt:
+            c = self.train_cfg
+            capacities = self.capacities or initial_capacities(self.model.config, layout, x0, poses, dt)
+            self._static = StaticRollout(self.model, capacities, dt, compile=c.compile, cuda_graph=c.cuda_graph,
+                                         autocast_bf16=c.autocast_bf16)
+        return self._static
+
     @torch.no_grad()
     def rollout(self, layout: SceneLayout, x0: torch.Tensor, v0: torch.Tensor, poses: torch.Tensor,
                 dt: float) -> tuple[torch.Tensor, torch.Tensor]:
         steps = _steps(x0, poses)
         projection = self._projector(layout)
+        if self.train_cfg.static:
+            return self._static_rollout(layout, x0, poses, dt).rollout(layout, x0, v0, poses, projection,
+                                                                         stop_non_finite=True)
         xs = torch.full((x0.shape[0], steps, *x0.shape[1:]), float("nan"), dtype=x0.dtype, device=x0.device)
         vs = xs.clone()
         x, v = x0, v0

@@ -20,6 +20,8 @@ def _most_similar_b(keys_a: Tensor, keys_b: Tensor) -> Tensor:
     b = nn.functional.normalize(keys_b.float(), dim=-1).transpose(1, 2)  # (B, D, Nb)
     rows = max(1, _SIM_CHUNK_ELEMENTS // max(1, a.shape[0] * b.shape[-1]))
     with torch.autocast(device_type=a.device.type, enabled=False):  # float32 scores for a stable argmax
+        if a.shape[1] <= rows:  # one chunk (a bound, not a size: compiled code stays valid for smaller scenes)
+            return torch.bmm(a, b).argmax(dim=-1)
         return torch.cat([torch.bmm(a[:, i:i + rows], b).argmax(dim=-1) for i in range(0, a.shape[1], rows)], dim=1)
 
 

@@ -175,10 +175,10 @@ def padded_radius_neighbors(query: Tensor, points: Tensor, radius: float, capaci
     grid = _sorted_grid(p32, point_batch, radius)
     cells = grid_cells(q32, radius)
     rows = max(1, _CHUNK_CANDIDATES // (27 * capacity.cell_capacity))
+    if n <= rows:  # one chunk: a bound on n, not its value, so a compiled search stays valid for any n below it
+        return _search_chunk(q32, p32, grid, cells, query_batch, 0, radius, capacity, exclude_self)
     parts = [_search_chunk(q32, p32, grid, cells[s:s + rows], query_batch[s:s + rows], s, radius, capacity,
                            exclude_self) for s in range(0, n, rows)]
-    if len(parts) == 1:
-        return parts[0]
     return PaddedNeighbors(torch.cat([p.index for p in parts]), torch.cat([p.valid for p in parts]),
                            torch.stack([p.overflow for p in parts]).sum())
 

@@ -52,7 +52,7 @@ class TopologyProjection(nn.Module):
     def _neighbour_sum(self, d: Tensor) -> Tensor:
         """Sum over rest-edge neighbours of a per-vertex field d (B, N, K)."""
         i, j = self.edges[:, 0], self.edges[:, 1]
-        return torch.zeros_like(d).index_add(1, i, d[:, j]).index_add(1, j, d[:, i])
+        return torch.zeros_like(d).index_add(1, i, d.index_select(1, j)).index_add(1, j, d.index_select(1, i))
 
     def smooth(self, d: Tensor) -> Tensor:
         """Uniform-umbrella Laplacian smoothing d <- d + w (mean_nbr(d) - d); isolated vertices unchanged."""
@@ -69,7 +69,7 @@ class TopologyProjection(nn.Module):
         lo, hi = self.min_length.to(x.dtype), self.max_length.to(x.dtype)
         eps = torch.finfo(x.dtype).tiny
         for _ in range(self.constraint_iterations):
-            e = x[:, j] - x[:, i]  # (B, E, 3)
+            e = x.index_select(1, j) - x.index_select(1, i)  # (B, E, 3); index_select: an atomic backward
             length = (e.square().sum(-1) + eps).sqrt()  # eps keeps the gradient finite at zero length
             excess = length - torch.minimum(torch.maximum(length, lo), hi)  # 0 inside [lo, hi]
             violating = (excess != 0).to(x.dtype)

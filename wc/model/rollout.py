@@ -27,6 +27,22 @@ def frame_step(model: WorldContact, layout: SceneLayout, dt: float, projection: 
     return step
 
 
+def compiled(step: Step, dynamic: bool = True, backend: str = "inductor") -> Step:
+    """`torch.compile` of a frame step (fullgraph: any host sync or data-dependent shape is an error). dynamic: sizes
+    stay symbolic, so one graph serves every layout, batch size and neighbour capacity (only Python-level
+    differences, such as the number of bodies, compile again); False specialises to the first shapes."""
+    if dynamic:
+        import torch._dynamo.config as dynamo_config  # noqa: PLC0415
+
+        dynamo_config.specialize_float = True  # radii, Δt and config floats are constants, not graph inputs
+        dynamo_config.force_nn_module_property_static_shapes = False  # the projection's buffers carry N
+        dynamo_config.force_parameter_static_shapes = False
+        import torch.fx.experimental._config as fx_config  # noqa: PLC0415
+
+        fx_config.use_duck_shape = False  # a batch of 3 is not the xyz axis of size 3
+    return torch.compile(step, fullgraph=True, dynamic=dynamic, backend=backend)
+
+
 def rollout(model: WorldContact, layout: SceneLayout, x0: torch.Tensor, v0: torch.Tensor, poses: torch.Tensor,
             dt: float, projection: TopologyProjection | None = None, *, neighbor_skin_m: float | None = None,
             neighbors: NeighborCache | FixedNeighbors | None = None,

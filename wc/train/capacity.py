@@ -54,3 +54,11 @@ def data_capacities(store: TrajectoryStore, phases: list[Phase], cfg: ModelConfi
         for name, (k, c) in frame_counts(layout_for(p.layout), cfg, x, poses, store.dt).items():
             most[name] = [max(most[name][0], k), max(most[name][1], c)]
     return {name: capacity_for(k, c, headroom) for name, (k, c) in most.items()}, most
+
+
+def initial_capacities(cfg: ModelConfig, layout: SceneLayout, x0: torch.Tensor, poses: torch.Tensor, dt: float,
+                       headroom: float = 2.0) -> dict[str, NeighborCapacity]:
+    """Capacities from a rollout's first frame (scene 0 of x0 (B, N, 3), poses (B, T, P, 7)), for a model that
+    carries none; a rollout grows them where they overflow."""
+    counts = frame_counts(layout, cfg, x0[0].detach().expand(2, -1, -1), poses[0, :2], dt)
+    return {name: capacity_for(k, c, headroom) for name, (k, c) in counts.items()}

@@ -56,8 +56,9 @@ class TrainConfig:
     # validation; `compile` (torch.compile of each frame step) and `cuda_graph` (CUDA only) build on it.
     static: bool = False
     compile: bool = False
+    compile_dynamic: bool = False  # True: one graph for every layout and batch size (its backward compiles slowly)
     cuda_graph: bool = False
-    neighbor_headroom: float = 1.5
+    neighbor_headroom: float = 1.25
     max_minutes: float = 0.0  # stop cleanly with a complete checkpoint after this wall time (0 = no limit); --resume goes on
     device: str = "cpu"  # cpu | cuda | cuda:k (torchrun: each process takes cuda:LOCAL_RANK)
     seed: int = 0

@@ -24,7 +24,7 @@ from torch import nn
 
 from wc.model.fixed_neighbors import FixedNeighbors
 from wc.model.layout import SceneLayout
-from wc.model.rollout import frame_step, rollout
+from wc.model.rollout import compiled, frame_step
 from wc.model.worldcontact import WorldContact
 from wc.train.config import TrainConfig
 from wc.train.evaluation import segment_loss
@@ -84,11 +84,12 @@ class StepSettings:
     autocast_bf16: bool
     compile: bool
     cuda_graph: bool
+    compile_dynamic: bool = True
 
     @classmethod
     def of(cls, cfg: TrainConfig, dt: float) -> StepSettings:
         return cls(cfg.window, cfg.batch_size, dt, cfg.lambda_x, cfg.lambda_v, cfg.grad_clip, cfg.autocast_bf16,
-                   cfg.compile, cfg.cuda_graph)
+                   cfg.compile, cfg.cuda_graph, cfg.compile_dynamic)
 
 
 class LayoutStep:
@@ -104,7 +105,7 @@ class LayoutStep:
         self.starts = torch.zeros(settings.batch_size, dtype=torch.long, device=self.device)
         self.graphed = settings.cuda_graph and self.device.type == "cuda"
         step = frame_step(model, layout, settings.dt, projection, neighbors)
-        self.frame = torch.compile(step, fullgraph=True, dynamic=False) if settings.compile else step
+        self.frame = compiled(step, settings.compile_dynamic) if settings.compile else step
         self._graphs: tuple[torch.cuda.CUDAGraph, torch.cuda.CUDAGraph, torch.Tensor] | None = None
 
     def _forward_backward(self) -> torch.Tensor:
