@@ -7,8 +7,8 @@ Prints the top CUDA kernels by total time and the kernel count per step.
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 
-import numpy as np
 import torch
 from torch.profiler import ProfilerActivity, profile
 
@@ -17,7 +17,6 @@ from wc.config import read_params
 from wc.train.capacity import data_capacities
 from wc.train.loop import SegmentRollout
 from wc.train.static_step import LayoutStep, StepSettings, make_optimizer
-from dataclasses import replace
 
 
 def main() -> None:

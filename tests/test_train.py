@@ -17,8 +17,8 @@ import pytest
 import torch
 
 from stages.train import run
-from tests.synthetic_store import write_synthetic_store
-from wc.config import ParamsError, load_section, read_params
+from tests.synthetic_store import default_params, write_synthetic_store
+from wc.config import ParamsError, load_section
 from wc.data.store import TrajectoryStore
 from wc.model.config import ModelConfig
 from wc.model.layout import scene_layout
@@ -40,9 +40,7 @@ TINY_TRAIN = {"base": {"steps": 6, "peak_lr": 1e-3, "start_lr": 1e-4, "final_lr"
 
 @pytest.fixture(scope="module")
 def params() -> dict[str, Any]:
-    p = read_params("params.yaml")
-    p["train"].update(copy.deepcopy(TINY_TRAIN))
-    return p
+    return default_params(TINY_TRAIN)
 
 
 @pytest.fixture(scope="module")

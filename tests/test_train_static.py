@@ -14,8 +14,7 @@ import pytest
 import torch
 
 from stages.train import run
-from tests.synthetic_store import write_synthetic_store
-from wc.config import read_params
+from tests.synthetic_store import default_params, write_synthetic_store
 from wc.data.store import TrajectoryStore
 from wc.model.config import ModelConfig
 from wc.model.padded_neighbors import NeighborCapacity
@@ -41,9 +40,7 @@ TINY_TRAIN = {"base": {"steps": 4, "peak_lr": 1e-3, "start_lr": 1e-4, "final_lr"
 
 @pytest.fixture(scope="module")
 def params() -> dict[str, Any]:
-    p = read_params("params.yaml")
-    p["train"].update(copy.deepcopy(TINY_TRAIN))
-    return p
+    return default_params(TINY_TRAIN)
 
 
 @pytest.fixture(scope="module")

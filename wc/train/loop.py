@@ -180,6 +180,7 @@ def train(store_path: str | Path, out_dir: str | Path, model_cfg: ModelConfig, c
             capacities, measured = data_capacities(store, data.train_phases, model_cfg, layout_for,
                                                    cfg.neighbor_headroom, procs.device)
         trainer = StaticTrainer(model, runner, optimizer, capacities, StepSettings.of(cfg, store.dt))
+        trainer.grown = list(state.get("neighbor_growth", [])) if state is not None else []
         steps: ReferenceSteps | StaticSteps = StaticSteps(
             ResidentWindows(store, data.train_windows, cfg.window, procs.device), sampler, trainer, layout_for)
     else:
@@ -202,7 +203,8 @@ def train(store_path: str | Path, out_dir: str | Path, model_cfg: ModelConfig, c
     def static_meta() -> dict[str, Any]:
         if trainer is None:
             return {}
-        return {"capacities": capacities_to_dict(trainer.capacities), "measured_neighbors": measured}
+        return {"capacities": capacities_to_dict(trainer.capacities), "measured_neighbors": measured,
+                "neighbor_growth": trainer.grown}
 
     total = cfg.base.steps + cfg.projection.steps
     step_times: list[float] = []
@@ -247,7 +249,7 @@ def train(store_path: str | Path, out_dir: str | Path, model_cfg: ModelConfig, c
                   "s_per_step_median": statistics.median(step_times) if step_times else float("nan")}
     elif procs.main:
         report = _finish(model, work, out_dir, cfg, data, history, step_times, procs)
-        report.update(static_meta(), neighbor_growth=trainer.grown if trainer is not None else [])
+        report.update(static_meta())
     distributed.barrier(procs)
     distributed.stop(procs)
     return report
