@@ -28,6 +28,7 @@ from wc.train.config import TrainConfig
 from wc.train.data import phases_of, windows_of
 from wc.train.evaluation import segment_loss
 from wc.train.loop import SegmentRollout, _layouts
+from wc.train.noise import noisy_state
 from wc.train.resident import ResidentWindows
 from wc.train.static_step import LayoutStep, StaticTrainer, StepSettings
 
@@ -68,7 +69,8 @@ def _gradients(model: torch.nn.Module) -> list[torch.Tensor]:
 
 def _reference(model: WorldContact, layout, x, v, poses, dt: float, projection, cfg: TrainConfig):  # noqa: ANN001
     model.zero_grad(set_to_none=True)
-    xp, vp = SegmentRollout(model)(layout, x[:, 0], v[:, 0], poses, dt, projection)
+    x0, v0 = noisy_state(x[:, 0], v[:, 0], cfg.input_noise_m, dt)
+    xp, vp = SegmentRollout(model)(layout, x0, v0, poses, dt, projection)
     loss = segment_loss(xp, vp, x[:, 1:], v[:, 1:], cfg.lambda_x, cfg.lambda_v)
     loss.backward()
     return float(loss.detach()), _gradients(model)
@@ -82,10 +84,12 @@ def _relative(a: torch.Tensor, b: torch.Tensor) -> float:
     return float((a - b).norm() / b.norm().clamp_min(1e-30))
 
 
-@pytest.mark.parametrize("stage,tokenizer", [("base", "contact"), ("projection", "contact"), ("base", "linear")])
-def test_static_step_matches_the_reference_loss_and_gradients(setting, stage, tokenizer):
+@pytest.mark.parametrize("stage,tokenizer,noise", [("base", "contact", 0.0), ("projection", "contact", 0.0),
+                                                   ("base", "linear", 0.0), ("base", "contact", 3e-4)])
+def test_static_step_matches_the_reference_loss_and_gradients(setting, stage, tokenizer, noise):
     store, model_cfg, cfg, resident, layout_for, capacities, _ = setting
     model_cfg = replace(model_cfg, tokenizer=tokenizer)
+    cfg = replace(cfg, input_noise_m=noise)
     torch.manual_seed(1)
     model = WorldContact(model_cfg, velocity_m_s=0.3, delta_x_m=0.005, delta_v_m_s=0.1).train()
     torch.nn.init.normal_(model.head.mlp[-1].weight, std=0.05)  # motion large enough to change neighbours
@@ -189,3 +193,20 @@ def test_max_minutes_stops_with_a_complete_checkpoint(store_path, params, tmp_pa
     state = torch.load(tmp_path / "m.partial" / "last_state.pt", weights_only=False)
     assert state["step"] == 1 and {"model", "optimizer", "sampler", "rng", "capacities"} <= set(state)
     assert not (tmp_path / "r.json").exists()
+
+
+def test_input_noise_is_a_consistent_random_walk():
+    """x gets noise of std σ; the frame before it, x - v·Δt, gets σ/√2 (the walk's first step): x and v stay the
+    state of a noisy trajectory."""
+    torch.manual_seed(0)
+    x, v = torch.randn(4, 50_000, 3), torch.randn(4, 50_000, 3)
+    same = noisy_state(x, v, 0.0, 0.04)
+    assert same[0] is x and same[1] is v
+    sigma, dt = 1e-3, 0.04
+    xn, vn = noisy_state(x, v, sigma, dt)
+    on_x = (xn - x).std().item()
+    on_previous = ((xn - vn * dt) - (x - v * dt)).std().item()
+    assert on_x == pytest.approx(sigma, rel=0.02)
+    assert on_previous == pytest.approx(sigma / 2**0.5, rel=0.02)
+    with pytest.raises(ValueError, match="noise"):
+        noisy_state(x, v, -1.0, dt)

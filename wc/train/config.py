@@ -37,6 +37,7 @@ class TrainConfig:
     betas: tuple[float, float] = (0.9, 0.999)
     weight_decay: float = 5.0e-4
     grad_clip: float = 1.0  # max global gradient norm (0 = off)
+    input_noise_m: float = 0.0  # random-walk noise std on each window's starting state [m] (wc/train/noise.py; 0 = off)
     smoothing_iterations: int = 4  # projection P: Laplacian smoothing of the displacement
     smoothing_weight: float = 0.35
     constraint_iterations: int = 32  # then edge-length constraints
@@ -77,6 +78,8 @@ class TrainConfig:
             raise ValueError("train.compile and train.cuda_graph need the static-shape path (train.static: true)")
         if self.neighbor_headroom < 1.0:
             raise ValueError(f"neighbor_headroom must be >= 1, got {self.neighbor_headroom}")
+        if self.input_noise_m < 0:
+            raise ValueError(f"input_noise_m must be >= 0 m, got {self.input_noise_m}")
         if self.max_minutes < 0:
             raise ValueError(f"max_minutes must be >= 0 (0 = no limit), got {self.max_minutes}")
         for name in ("eval_every_steps", "val_windows", "holdout_block_frames", "rollout_frames", "stats_episodes", "checkpoint_every_steps"):

@@ -13,7 +13,7 @@ from __future__ import annotations
 import shutil
 import statistics
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -36,6 +36,7 @@ from wc.train.config import TrainConfig
 from wc.train.data import (LayoutBatchSampler, LayoutKey, Phase, Scales, Window, WindowDataset, data_scales,
                            phases_of, split_blocks, windows_of)
 from wc.train.evaluation import rollout_error, segment_loss, validation_losses
+from wc.train.noise import noisy_state
 from wc.train.resident import ResidentWindows
 from wc.train.schedule import learning_rate
 from wc.train.static_step import StaticTrainer, StepSettings, make_optimizer, set_learning_rate
@@ -179,7 +180,10 @@ def train(store_path: str | Path, out_dir: str | Path, model_cfg: ModelConfig, c
         if capacities is None:
             capacities, measured = data_capacities(store, data.train_phases, model_cfg, layout_for,
                                                    cfg.neighbor_headroom, procs.device)
-        trainer = StaticTrainer(model, runner, optimizer, capacities, StepSettings.of(cfg, store.dt))
+        settings = StepSettings.of(cfg, store.dt)
+        if procs.distributed:  # DDP's gradient all-reduce runs outside a captured graph
+            settings = replace(settings, cuda_graph=False)
+        trainer = StaticTrainer(model, runner, optimizer, capacities, settings)
         trainer.grown = list(state.get("neighbor_growth", [])) if state is not None else []
         steps: ReferenceSteps | StaticSteps = StaticSteps(
             ResidentWindows(store, data.train_windows, cfg.window, procs.device), sampler, trainer, layout_for)
@@ -261,8 +265,9 @@ def optimisation_step(runner: nn.Module, optimizer: torch.optim.Optimizer, layou
     """One AdamW step on a batch of windows x, v (B, W, N, 3), poses (B, W, P, 7); returns the loss (synchronised).
     The reference path (pair-list neighbours, eager)."""
     autocast = cfg.autocast_bf16 and x.device.type == "cuda"
+    x0, v0 = noisy_state(x[:, 0], v[:, 0], cfg.input_noise_m, dt)
     with torch.autocast("cuda", dtype=torch.bfloat16, enabled=autocast):
-        xp, vp = runner(layout, x[:, 0], v[:, 0], poses, dt, projection)
+        xp, vp = runner(layout, x0, v0, poses, dt, projection)
     loss = segment_loss(xp.float(), vp.float(), x[:, 1:], v[:, 1:], cfg.lambda_x, cfg.lambda_v)
     optimizer.zero_grad(set_to_none=True)
     loss.backward()

@@ -28,6 +28,7 @@ from wc.model.rollout import compiled, frame_step
 from wc.model.worldcontact import WorldContact
 from wc.train.config import TrainConfig
 from wc.train.evaluation import segment_loss
+from wc.train.noise import noisy_state
 from wc.train.resident import LayoutFrames
 
 
@@ -84,12 +85,13 @@ class StepSettings:
     autocast_bf16: bool
     compile: bool
     cuda_graph: bool
-    compile_dynamic: bool = True
+    compile_dynamic: bool = False
+    input_noise_m: float = 0.0
 
     @classmethod
     def of(cls, cfg: TrainConfig, dt: float) -> StepSettings:
         return cls(cfg.window, cfg.batch_size, dt, cfg.lambda_x, cfg.lambda_v, cfg.grad_clip, cfg.autocast_bf16,
-                   cfg.compile, cfg.cuda_graph, cfg.compile_dynamic)
+                   cfg.compile, cfg.cuda_graph, cfg.compile_dynamic, cfg.input_noise_m)
 
 
 class LayoutStep:
@@ -114,9 +116,9 @@ class LayoutStep:
         x, v, poses = self.frames.gather(self.starts, self.s.window)
         autocast = (torch.autocast("cuda", dtype=torch.bfloat16) if self.s.autocast_bf16 and self.device.type == "cuda"
                     else nullcontext())
+        x0, v0 = noisy_state(x[:, 0], v[:, 0], self.s.input_noise_m, self.s.dt)
         with autocast:
-            xp, vp = self.runner(self.layout, x[:, 0], v[:, 0], poses, self.s.dt, self.projection,
-                                 self.neighbors, self.frame)
+            xp, vp = self.runner(self.layout, x0, v0, poses, self.s.dt, self.projection, self.neighbors, self.frame)
         loss = segment_loss(xp.float(), vp.float(), x[:, 1:], v[:, 1:], self.s.lambda_x, self.s.lambda_v)
         loss.backward()
         return torch.stack((loss.detach(), self.neighbors.overflow.sum().to(loss.dtype)))

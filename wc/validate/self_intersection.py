@@ -10,13 +10,14 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-MAX_SKIPS = 16  # adjacent-triangle hits skipped per edge before giving up on that edge
+MAX_SKIPS = 64  # adjacent-triangle hits skipped per edge; an edge that needs more is reported unchecked (an error)
+UNCHECKED = -2  # hit_face of an edge whose ray ran out of skips before its far end
 SKIP_EPS = 1.0e-5  # restart offset past an adjacent hit, as a fraction of the edge length
 
 
 @wp.kernel
 def _edge_crossings(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), edges: wp.array(dtype=wp.vec2i),
-                    faces: wp.array(dtype=wp.int32), hit_face: wp.array(dtype=wp.int32)):
+                    faces: wp.array(dtype=wp.int32), max_skips: int, hit_face: wp.array(dtype=wp.int32)):
     e = wp.tid()
     a = edges[e][0]
     b = edges[e][1]
@@ -28,7 +29,7 @@ def _edge_crossings(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), edges: wp.
     dir = d / length
     t0 = float(0.0)
     skips = int(0)
-    while skips < MAX_SKIPS and t0 < length:
+    while skips < max_skips and t0 < length:
         q = wp.mesh_query_ray(mesh, start + dir * t0, dir, length - t0)
         if not q.result:
             return
@@ -41,6 +42,8 @@ def _edge_crossings(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), edges: wp.
         else:
             hit_face[e] = q.face
             return
+    if t0 < length:
+        hit_face[e] = UNCHECKED
 
 
 def unique_edges(faces: np.ndarray) -> np.ndarray:
@@ -50,13 +53,20 @@ def unique_edges(faces: np.ndarray) -> np.ndarray:
     return np.unique(e, axis=0).astype(np.int32)
 
 
-def crossing_edges(points: np.ndarray, faces: np.ndarray, edges: np.ndarray, device: str = "cpu") -> np.ndarray:
-    """Per edge (E,) the index of a non-adjacent face it crosses, or -1. points (N, 3) m, faces (F, 3)."""
+def crossing_edges(points: np.ndarray, faces: np.ndarray, edges: np.ndarray, device: str = "cpu",
+                   max_skips: int = MAX_SKIPS) -> np.ndarray:
+    """Per edge (E,) the index of a non-adjacent face it crosses, or -1. points (N, 3) m, faces (F, 3).
+    RuntimeError if an edge could not be checked to its end (more than MAX_SKIPS adjacent hits)."""
     with wp.ScopedDevice(device):
         pts = wp.array(np.ascontiguousarray(points, np.float32), dtype=wp.vec3)
         idx = wp.array(np.ascontiguousarray(faces, np.int32).ravel())
         mesh = wp.Mesh(points=pts, indices=idx)
         hit = wp.full(len(edges), -1, dtype=wp.int32)
         wp.launch(_edge_crossings, dim=len(edges),
-                  inputs=[mesh.id, pts, wp.array(np.ascontiguousarray(edges, np.int32), dtype=wp.vec2i), idx, hit])
-        return hit.numpy()
+                  inputs=[mesh.id, pts, wp.array(np.ascontiguousarray(edges, np.int32), dtype=wp.vec2i), idx, int(max_skips), hit])
+        hits = hit.numpy()
+    unchecked = np.flatnonzero(hits == UNCHECKED)
+    if len(unchecked):  # never pass an edge that was not checked to its end
+        raise RuntimeError(f"self-intersection check: {len(unchecked)} edges (first {edges[unchecked[0]].tolist()}) "
+                           f"hit more than {max_skips} adjacent triangles; the frame was not checked")
+    return hits
