@@ -142,7 +142,7 @@ def test_stage_writes_checked_worldcontact_episodes(run, store_path, params):
     assert r["accepted"] == 2 and r["target_reached"] and r["expanded_total"] == 4
     assert r["generated"] == r["accepted"] + sum(r["rejections"].values())
     assert set(PREDICATES) <= set(r["rejections"]) and r["trajectories_per_min"] > 0 and r["device"] == "cpu"
-    assert r["contact_projection"] is True  # the params default
+    assert r["projection"] == "joint" and r["projection_stats"]["steps"] > 0  # the params default
     assert [s["presettle_state"] for s in r["sources"]] == [False, False]  # synthetic: not the agent's frame 0
     src, dst = TrajectoryStore(store_path), TrajectoryStore(out / "expanded.zarr")
     assert dst.attrs["created_by"] == "stages.expand" and dst.object_names == src.object_names

@@ -19,7 +19,11 @@ class ExpandConfig:
     shift_x_range_m: Range  # bag xy shift, uniform per axis
     shift_y_range_m: Range
     task_check: bool = True  # also apply the task's own verdict (lift_handle: not_lifted), as the simulator agent does
-    contact_projection: bool = True  # after each predicted step, put cloth vertices inside a body back on its surface
+    # after each predicted step: "joint" projects cloth edge limits and contacts together (wc.expand.constraints),
+    # "contact" only pushes cloth out of bodies (wc.expand.contact), "none" keeps the model's step
+    projection: str = "joint"
+    projection_iterations: int = 50  # joint: loop passes at most (it stops once edges and contacts hold)
+    projection_edge_ratio: Range = (0.9, 1.1)  # joint: edge length / rest length kept within these
     device: str = "cpu"  # cpu | cuda | cuda:k | auto
     seed: int = 0
 
@@ -33,5 +37,12 @@ class ExpandConfig:
             low, high = getattr(self, name)
             if not low <= high:
                 raise ValueError(f"{name} must be (low, high) with low <= high, got {(low, high)}")
+        if self.projection not in ("joint", "contact", "none"):
+            raise ValueError(f"projection must be joint, contact or none, got {self.projection!r}")
+        if self.projection_iterations < 1:
+            raise ValueError(f"projection_iterations must be >= 1, got {self.projection_iterations}")
+        lo, hi = self.projection_edge_ratio
+        if not 0 < lo <= 1 <= hi:
+            raise ValueError(f"projection_edge_ratio must satisfy 0 < min <= 1 <= max, got {self.projection_edge_ratio}")
         if not (self.device in ("cpu", "cuda", "auto") or self.device.startswith("cuda:")):
             raise ValueError(f"device must be cpu, cuda, cuda:k or auto, got {self.device!r}")

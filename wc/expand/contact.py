@@ -166,9 +166,11 @@ class ContactProjectedPredictor:
     objects and layout.bodies must hold every scene.link_names body; like WorldContact, the batch stops at the
     first step where an episode turns non-finite (the remaining frames stay NaN)."""
 
-    def __init__(self, inner: Predictor, scene: Scene) -> None:
+    def __init__(self, inner: Predictor, scene: Scene, projection: object | None = None) -> None:
+        """projection: anything with `scene`, `boxes(link_poses, like)` and `project(...)` as ContactProjection (e.g.
+        wc.expand.constraints.JointStepProjection); default the contact push alone."""
         self.inner = inner
-        self.projection = ContactProjection(scene)
+        self.projection = projection if projection is not None else ContactProjection(scene)
 
     def _link_columns(self, layout: SceneLayout) -> list[int]:
         scene = self.projection.scene

@@ -6,7 +6,8 @@ turn, else all of them), moved rigidly on the table (wc.expand.transform); the c
 cell, speed and amplitude, the task program plans the right arm's actions against the moved state
 (wc.expand.plan; a plan whose frame 0 already penetrates the start posture is infeasible), and WorldContact
 rolls the batch out autoregressively from v = 0 under the prescribed link and table poses (wc.expand.rollout),
-with the contact projection after every step when `contact_projection` (wc.expand.contact). Every
+with a projection after every step (`projection`: edges and contacts together, wc.expand.constraints, or the
+contact push alone, wc.expand.contact). Every
 rollout then faces the source data's checks (wc.validate.predicates, in their order, plus the task's own
 verdict when `task_check`); only the episodes that pass are written, the others are counted by their first
 failing check. Generation stops when the task's source episodes plus the accepted generated ones reach
@@ -30,6 +31,7 @@ from wc.data.store import TrajectoryStore, TrajectoryWriter
 from wc.devices import resolve_device
 from wc.eval.predictors import CHECKPOINT, WorldContactPredictor
 from wc.expand.config import ExpandConfig
+from wc.expand.constraints import JointStepProjection
 from wc.expand.contact import ContactProjectedPredictor
 from wc.expand.plan import PlannedEpisode, SourceEpisode, pick_parent, plan_episode, source_episodes
 from wc.expand.rollout import Rollout, rollout_batch
@@ -103,7 +105,9 @@ def expand(params: dict[str, Any], model_dir: str | Path = "models/worldcontact"
     torch.manual_seed(cfg.seed)
     model = WorldContactPredictor.from_dir(model_dir, train_cfg, device)
     layout = scene_layout(src, list(scene.objects), list(scene.link_names), model.tag_scale).to(device)
-    predictor = ContactProjectedPredictor(model, scene) if cfg.contact_projection else model
+    projection = (JointStepProjection(scene, cfg.projection_edge_ratio, cfg.projection_iterations)
+                  if cfg.projection == "joint" else None)
+    predictor = model if cfg.projection == "none" else ContactProjectedPredictor(model, scene, projection)
     dt = src.dt
     checkpoint = _checkpoint_info(model_dir)
     if checkpoint["dt"] is not None and abs(float(checkpoint["dt"]) - dt) > 1e-9:
@@ -158,7 +162,8 @@ def expand(params: dict[str, Any], model_dir: str | Path = "models/worldcontact"
         "task": task.name,
         "source_episodes": len(sources),
         "sources": [{"episode": s.eid, "cell": s.cell, "presettle_state": s.presettle} for s in sources],
-        "contact_projection": cfg.contact_projection,
+        "projection": cfg.projection,
+        "projection_stats": projection.stats if projection is not None else None,
         "target_trajectories": cfg.target_trajectories,
         "wanted_generated": wanted,
         "attempts": attempts,
