@@ -312,3 +312,20 @@ def test_convex_planes_rejects_non_convex(scene_cfg):
     dented[top, 2] -= 0.01
     with pytest.raises(ValueError, match="convex"):
         convex_planes(dented, cube.faces, "dented cube")
+
+
+def test_blow_up_says_which_criterion_fired(scene, clean):
+    from wc.validate.predicates import Episode, blow_up, blow_up_detail  # noqa: PLC0415
+
+    fast = {k: np.array(a, copy=True) for k, a in clean.items()}
+    fast["v"][4, 0] = [0.0, 0.0, CFG.max_speed_m_s + 1.0]
+    ep = Episode(fast["x"], fast["v"], fast["action"], fast["link_poses"], 0.04)
+    assert blow_up(scene, ep, CFG) == 4
+    detail = blow_up_detail(scene, ep, CFG, 4)
+    assert detail["criterion"] == "speed" and detail["max_speed_m_s"] > CFG.max_speed_m_s
+    stretched = {k: np.array(a, copy=True) for k, a in clean.items()}
+    stretched["x"][6:, 0] += [0.0, 0.0, 0.5]  # one vertex 50 cm off: its edges far beyond the strain limit
+    ep = Episode(stretched["x"], stretched["v"], stretched["action"], stretched["link_poses"], 0.04)
+    assert blow_up(scene, ep, CFG) == 6
+    detail = blow_up_detail(scene, ep, CFG, 6)
+    assert detail["criterion"] == "strain" and detail["max_edge_strain"] > CFG.max_edge_strain

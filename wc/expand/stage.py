@@ -42,7 +42,7 @@ from wc.scene.scene import Scene
 from wc.tasks.base import InfeasibleEpisode, Task, get_task
 from wc.train.config import TrainConfig
 from wc.validate.config import ValidateConfig
-from wc.validate.predicates import PREDICATES, first_failure
+from wc.validate.predicates import PREDICATES, Episode, blow_up_detail, first_failure
 from wc.validate.stage import EpisodeScenes
 
 SECTIONS = ["expand", "scene", "tasks", "validate", "train"]
@@ -58,6 +58,14 @@ def verdict(task: Task, scene: Scene, task_check: bool, planned: PlannedEpisode,
         return failure
     reason = task.check(scene, planned.spec, r.x, r.action)
     return (reason, len(r.x) - 1) if reason else None
+
+
+def _failure_detail(scene: Scene, r: Rollout, cfg: ValidateConfig, dt: float, reason: str,
+                    frame: int) -> dict[str, Any]:
+    """A blow_up's sub-criterion (speed or strain) and both values at its frame; nothing for other reasons."""
+    if reason != "blow_up":
+        return {}
+    return blow_up_detail(scene, Episode(r.x, r.v, r.action, r.link_poses, dt), cfg, frame)
 
 
 def _checkpoint_info(model_dir: Path) -> dict[str, Any]:
@@ -151,7 +159,8 @@ def expand(params: dict[str, Any], model_dir: str | Path = "models/worldcontact"
                 if failure is not None:
                     rejections[failure[0]] = rejections.get(failure[0], 0) + 1
                     rejected.append({"seed": p.spec.seed, "cell": p.spec.cell, "parent": p.parent,
-                                     "reason": failure[0], "frame": failure[1], "frames": len(r.x)})
+                                     "reason": failure[0], "frame": failure[1], "frames": len(r.x),
+                                     **_failure_detail(scene, r, validate_cfg, dt, *failure)})
                     continue
                 writer.add_episode(r.x, r.v, r.action, r.link_poses, r.env_poses, **_episode_attrs(p, source))
                 accepted += 1

@@ -112,17 +112,37 @@ def non_finite(scene: Scene, ep: Episode, cfg: ValidateConfig) -> int | None:
     return _first(bad)
 
 
-def blow_up(scene: Scene, ep: Episode, cfg: ValidateConfig) -> int | None:
-    """First frame with a vertex faster than max_speed_m_s or a rest edge strained beyond max_edge_strain."""
-    bad = (np.linalg.norm(ep.v, axis=-1) > cfg.max_speed_m_s).any(axis=1)
+def speed_and_strain(scene: Scene, ep: Episode) -> tuple[np.ndarray, np.ndarray]:
+    """Per frame (T,): the fastest vertex speed [m/s] and the largest rest-edge strain (length / rest - 1)."""
+    speed = _nan_max(np.linalg.norm(ep.v, axis=-1))
+    strain = np.full(len(ep.x), -np.inf)
     slices = scene.vertex_slices()
     for name, mesh in scene.objects.items():
         edges = unique_edges(mesh.faces)
         rest = np.linalg.norm(mesh.vertices[edges[:, 0]] - mesh.vertices[edges[:, 1]], axis=-1)
         x = ep.x[:, slices[name]]
         length = np.linalg.norm(x[:, edges[:, 0]] - x[:, edges[:, 1]], axis=-1)
-        bad |= (length / np.maximum(rest, 1e-12) - 1.0 > cfg.max_edge_strain).any(axis=1)
-    return _first(bad)
+        strain = np.maximum(strain, _nan_max(length / np.maximum(rest, 1e-12) - 1.0))
+    return speed, strain
+
+
+def _nan_max(a: np.ndarray) -> np.ndarray:
+    """Per frame max of a (T, n) ignoring NaN (non_finite judges those); -inf for a frame without a value."""
+    return np.where(np.isnan(a), -np.inf, a).max(axis=1, initial=-np.inf)
+
+
+def blow_up(scene: Scene, ep: Episode, cfg: ValidateConfig) -> int | None:
+    """First frame with a vertex faster than max_speed_m_s or a rest edge strained beyond max_edge_strain."""
+    speed, strain = speed_and_strain(scene, ep)
+    return _first((speed > cfg.max_speed_m_s) | (strain > cfg.max_edge_strain))
+
+
+def blow_up_detail(scene: Scene, ep: Episode, cfg: ValidateConfig, frame: int) -> dict[str, object]:
+    """Which blow_up criterion fired at `frame` ("speed", "strain" or "speed+strain"), with both values there."""
+    speed, strain = speed_and_strain(scene, ep)
+    fired = [name for name, value, limit in (("speed", speed[frame], cfg.max_speed_m_s),
+                                             ("strain", strain[frame], cfg.max_edge_strain)) if value > limit]
+    return {"criterion": "+".join(fired), "max_speed_m_s": float(speed[frame]), "max_edge_strain": float(strain[frame])}
 
 
 def convex_planes(vertices: np.ndarray, faces: np.ndarray, name: str = "object"
