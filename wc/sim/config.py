@@ -51,6 +51,7 @@ class SimConfig:
     bag: ClothMaterial
     sphere: RigidMaterial
     cube: RigidMaterial
+    self_contact_filter_rings: int = 2  # self-contact skips element pairs this many mesh rings apart or closer (Newton's default 2)
 
     def validate(self) -> None:
         if not self.dt_s > 0:
@@ -58,6 +59,8 @@ class SimConfig:
         for name in ("substeps", "iterations", "worlds"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.self_contact_filter_rings < 0:
+            raise ValueError(f"self_contact_filter_rings must be >= 0, got {self.self_contact_filter_rings}")
         if self.settle_s < 0:
             raise ValueError(f"settle_s must be >= 0, got {self.settle_s}")
 

@@ -71,6 +71,7 @@ class NewtonSimulator:
             particle_enable_self_contact=cfg.self_contact and self.particles_per_world > 0,
             particle_self_contact_margin=cfg.self_contact_margin_m,
             particle_self_contact_gap=cfg.self_contact_gap_m,
+            particle_topological_contact_filter_threshold=cfg.self_contact_filter_rings,
         )
         self.pipeline = newton.CollisionPipeline(
             self.model, soft_contact_gap=cfg.soft_contact_gap_m, enable_rigid_soft_full_surface_contact=True
