@@ -125,3 +125,19 @@ def test_every_ablation_changes_one_valid_model_key(file):
 def test_gpu_params_train_both_paper_ablations():
     assert set(read_params(ROOT / "params/gpu.yaml")["ablations"]) == {"no_contact_tokenizer",
                                                                        "no_hierarchical_compression"}
+
+
+@pytest.mark.parametrize("file", ["params.yaml", "params/gpu.yaml"])
+def test_demonstrations_hold_as_long_as_policy_success_asks(file):
+    """The policy task's demonstrations (simulated and generated with its task params) hold the bag at least as
+    long as policy_eval's success hold, so the policy is trained on what it is judged by."""
+    params = read_params(ROOT / file)
+    task = params["policy_eval"]["task"]
+    assert params["dataset"]["task"] == params["expand"]["task"] == task
+    assert params["tasks"][task]["hold_s"] >= params["policy_eval"]["hold_s"] >= 2.0
+
+
+def test_sim_rejects_a_negative_self_contact_filter():
+    params = read_params(ROOT / "params.yaml", ["sim.self_contact_filter_rings=-1"])
+    with pytest.raises(ParamsError, match="self_contact_filter_rings"):
+        load_section(params, "sim", SimConfig)

@@ -21,6 +21,7 @@ from wc.data.store import TrajectoryWriter
 from wc.dynamics import ObjectState
 from wc.scene.config import SceneConfig
 from wc.scene.scene import OBJECT_KINDS, Scene, build_scene
+from wc.seeds import episode_seed
 from wc.sim.config import SimConfig
 from wc.sim.kinematic import pose_twists, transform_points
 from wc.sim.newton_sim import NewtonSimulator
@@ -120,11 +121,6 @@ def simulator_store(path: str | Path, scene_cfg: SceneConfig, sim_cfg: SimConfig
                           link_names=list(union.link_names), env_names=list(union.env_names)) as writer:
         writer.add_scene(union, {name: getattr(sim_cfg, name).__dict__ for name in union.objects})
         yield writer, union
-
-
-def episode_seed(stage_seed: int, task_index: int, episode_index: int) -> int:
-    """One independent seed per episode, derived from the stage seed."""
-    return int(np.random.SeedSequence([stage_seed, task_index, episode_index]).generate_state(1)[0])
 
 
 def pad_to_length(actions: np.ndarray, length: int) -> np.ndarray:

@@ -30,12 +30,13 @@ from tqdm import tqdm
 
 from wc.agent.parallel import init_worker
 from wc.agent.planner import CoveragePlanner
-from wc.agent.runner import (build_task_world, episode_seed, execute, judge, layout_attrs, release_frame, reset_batch,
+from wc.agent.runner import (build_task_world, execute, judge, layout_attrs, release_frame, reset_batch,
                              simulator_store)
 from wc.config import ParamsError, load_section, params_hash, set_dotted
 from wc.data.store import TrajectoryStore
 from wc.eval.stress_config import StressConfig
 from wc.scene.config import SceneConfig
+from wc.seeds import episode_seed
 from wc.sim.config import SimConfig
 from wc.sim.newton_sim import NewtonSimulator
 from wc.tasks.base import get_task

@@ -25,7 +25,6 @@ import torch
 from tqdm import tqdm
 
 from wc.agent.planner import CoveragePlanner
-from wc.agent.runner import episode_seed
 from wc.config import load_section, params_hash
 from wc.data.store import TrajectoryStore, TrajectoryWriter
 from wc.devices import resolve_device
@@ -39,6 +38,7 @@ from wc.model.layout import scene_layout
 from wc.reports import environment_info, write_json_atomic
 from wc.scene.config import SceneConfig
 from wc.scene.scene import Scene
+from wc.seeds import SeedStream, episode_seed
 from wc.tasks.base import InfeasibleEpisode, Task, get_task
 from wc.train.config import TrainConfig
 from wc.validate.config import ValidateConfig
@@ -138,7 +138,7 @@ def expand(params: dict[str, Any], model_dir: str | Path = "models/worldcontact"
         while accepted < wanted and attempts < cfg.max_attempts:
             planned: list[tuple[PlannedEpisode, SourceEpisode]] = []
             for i in range(attempts, attempts + min(cfg.batch_size, wanted - accepted, cfg.max_attempts - attempts)):
-                spec = planner.propose(task, episode_seed(cfg.seed, 0, i))
+                spec = planner.propose(task, episode_seed(cfg.seed, 0, i, SeedStream.EXPAND))
                 source = pick_parent(sources, spec.cell, i)
                 try:
                     planned.append((plan_episode(task, scene, source, spec, cfg, dt, validate_cfg), source))

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-SIMULATE_SEED_BOUND = 2**32  # simulate's episode seeds are SeedSequence uint32 draws: all below this
+from wc.seeds import SeedStream, stream_range
+
+POLICY_SEEDS = stream_range(SeedStream.POLICY_EVAL)  # trial episode seeds live here, apart from simulate's and expand's
 
 
 @dataclass(frozen=True)
@@ -12,7 +14,7 @@ class PolicyEvalConfig:
     task: str  # task program whose initial states are sampled (the policy's task), e.g. lift_handle
     trials: int  # seeded episodes per policy (paper: 20); the same trial seeds for every policy
     seed: int  # first trial seed; trial i has seed `seed + i` (lerobot-eval's --seed convention)
-    seed_offset: int  # episode seed = seed_offset + trial seed; >= 2**32 keeps it apart from simulate's
+    seed_offset: int  # episode seed = seed_offset + trial seed, inside the policy seed stream (wc.seeds)
     lift_height_m: float  # success: the bag's lowest vertex at least this far above the table top ...
     hold_s: float  # ... at every frame for this long
     max_steps: int | None  # steps per episode; null: the task program's own length plus the hold
@@ -24,9 +26,11 @@ class PolicyEvalConfig:
             raise ValueError(f"trials must be >= 1, got {self.trials}")
         if self.seed < 0:
             raise ValueError(f"seed must be >= 0, got {self.seed}")
-        if self.seed_offset < SIMULATE_SEED_BOUND:
-            raise ValueError(f"seed_offset must be >= 2**32 ({SIMULATE_SEED_BOUND}) so trial episode seeds never "
-                             f"equal a simulate episode seed (uint32), got {self.seed_offset}")
+        first, last = self.seed_offset + self.seed, self.seed_offset + self.seed + self.trials - 1
+        if first not in POLICY_SEEDS or last not in POLICY_SEEDS:
+            raise ValueError(f"seed_offset + seed .. + trials - 1 ({first} .. {last}) must lie in the policy seed stream "
+                             f"[{POLICY_SEEDS.start}, {POLICY_SEEDS.stop}) so trial episodes never repeat a simulate "
+                             f"or expand episode; seed_offset {POLICY_SEEDS.start} (2 * 2**32) does")
         if not self.lift_height_m > 0:
             raise ValueError(f"lift_height_m must be positive, got {self.lift_height_m}")
         if self.hold_s < 0:

@@ -1,7 +1,7 @@
 """`WorldContactLiftEnv`: the policy task ("right grasp and lift") closed-loop in the Newton simulator.
 
-reset(seed): trial seed s -> episode seed `policy_eval.seed_offset + s` (>= 2**32, so never one of the
-simulate stage's uint32 episode seeds); the task's coverage cell, speed and amplitude are drawn from
+reset(seed): trial seed s -> episode seed `policy_eval.seed_offset + s` (inside the policy seed stream of
+wc.seeds, so never a simulate or expand episode seed); the task's coverage cell, speed and amplitude are drawn from
 it, and its initial state is sampled, settled and planned exactly as the data-generation agent does
 (wc.agent.runner.reset_batch). Frame 0 is the settled state with the robot at the planned start action.
 
@@ -31,7 +31,7 @@ from wc.config import ParamsError, load_section, read_params
 from wc.dynamics import ObjectState
 from wc.policy.dataset import RIGHT_ARM, fps_of
 from wc.policy.policy_config import PolicyConfig
-from wc.policy_eval.config import PolicyEvalConfig
+from wc.policy_eval.config import POLICY_SEEDS, PolicyEvalConfig
 from wc.policy_eval.stepper import FrameStepper
 from wc.policy_eval.success import LiftHoldMonitor, hold_frames
 from wc.render.config import RenderConfig
@@ -118,6 +118,9 @@ class WorldContactLiftEnv(gym.Env):
         tic = time.perf_counter()
         self._trial_seed = int(seed)
         self.episode_seed = self.cfg.seed_offset + self._trial_seed
+        if self.episode_seed not in POLICY_SEEDS:
+            raise ValueError(f"trial seed {seed}: episode seed {self.episode_seed} leaves the policy seed stream "
+                             f"[{POLICY_SEEDS.start}, {POLICY_SEEDS.stop})")
         if self._trial_seed not in self._resets:
             self._resets[self._trial_seed] = self._plan(self.episode_seed)
         self.episode_spec, state, self.planned_actions = self._resets[self._trial_seed]
