@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from wc.config import ParamsError, add_params_arguments, load_section, params_hash, read_params
+from wc.policy.comparison import FLAG, WARNING, expanded_equals_source
 from wc.policy.finetune import finetune
 from wc.policy.policy_config import PolicyConfig
 from wc.reports import environment_info, write_json_atomic
@@ -38,8 +39,11 @@ def run(params: dict[str, Any], data_root: str | Path = "data/lerobot", out_root
     digest = params_hash(params, SECTIONS)
     results = {name: finetune(root, Path(out_root) / name, cfg, meta={"params_hash": digest}, progress=progress)
                for name, root in roots.items()}
+    equal = expanded_equals_source({name: r["episodes"] for name, r in results.items()})
+    if equal:
+        print(f"finetune: WARNING {WARNING}", flush=True)
     result = {
-        "policy_type": cfg.type, "steps": cfg.steps, "batch_size": cfg.batch_size, "seed": cfg.seed,
+        FLAG: equal, "policy_type": cfg.type, "steps": cfg.steps, "batch_size": cfg.batch_size, "seed": cfg.seed,
         "params_hash": digest, "wall_s": time.perf_counter() - start, "environment": environment_info(cfg.device),
         "datasets": {name: {k: r[k] for k in ("dataset", "episodes", "frames", "first_loss", "final_loss",
                                                "s_per_step_median", "train_s", "wall_s", "parameters")}

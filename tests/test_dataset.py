@@ -19,6 +19,7 @@ from stages.dataset import build_datasets, main
 from stages.push import main as push_main
 from wc.config import ParamsError, read_params
 from wc.data.store import TrajectoryStore
+from wc.policy.comparison import FLAG
 from wc.policy.dataset import PROVENANCE_FILE, fps_of, right_arm_state_action, select_episodes
 from wc.render.frames import RenderedStore, RenderedWriter
 from tests.synthetic_store import write_synthetic_store
@@ -123,7 +124,7 @@ def test_report_counts(built: dict[str, Any], inputs: dict[str, Path]) -> None:
     assert report["datasets"]["source"]["episodes"] == n_src == 2
     assert report["datasets"]["expanded"]["episodes"] == n_src + n_exp == 4
     assert report["datasets"]["expanded"]["frames"] == (n_src + n_exp) * T
-    assert report["generated_episodes"] == n_exp
+    assert report["generated_episodes"] == n_exp and report[FLAG] is False
     assert report["skipped_episodes"]["source"] == {"other_task": 1, "split": 1, "rejected": 0}
     assert report["skipped_episodes"]["expanded"]["other_task"] == 1
     assert len(report["params_hash"]) == 16 and report["wall_s"] > 0
@@ -181,6 +182,25 @@ def test_missing_expanded_inputs_fail_before_writing(tmp_path: Path, params: dic
     assert not (tmp_path / "lerobot").exists() and not (tmp_path / "r.json").exists()
 
 
+def test_an_expansion_without_generated_episodes_is_flagged_or_refused(tmp_path: Path, params: dict[str, Any],
+                                                                      inputs: dict[str, Path]) -> None:
+    """Only another task's episodes in the expanded store: the two datasets hold the same episodes. The report says
+    so in its top-level flag; with dataset.require_generated the stage fails before writing anything."""
+    other = write_synthetic_store(tmp_path / "other.zarr", params, [("fall", "train")], frames=T, seed=2)
+    args = {**inputs, "expanded_trajectories": other,
+            "expanded_frames": write_frames(tmp_path / "other_frames.zarr", TrajectoryStore(other))}
+    strict = copy.deepcopy(params)
+    strict["dataset"] = {**strict["dataset"], "require_generated": True, "splits": ["test"]}
+    with pytest.raises(ValueError, match="no accepted generated 'carry' episode.*require_generated"):
+        build_datasets(strict, **args, out=tmp_path / "lerobot", report=tmp_path / "r.json")
+    assert not (tmp_path / "lerobot").exists() and not (tmp_path / "r.json").exists()
+    lenient = copy.deepcopy(strict)
+    lenient["dataset"]["require_generated"] = False
+    report = build_datasets(lenient, **args, out=tmp_path / "lerobot", report=tmp_path / "r.json")
+    assert report[FLAG] is True and report["generated_episodes"] == 0
+    assert report["datasets"]["expanded"]["episodes"] == report["datasets"]["source"]["episodes"] == 1
+
+
 def test_source_only_from_the_cli_h264_without_streaming(tmp_path: Path, inputs: dict[str, Path]) -> None:
     main(["--set", "dataset.include_expanded=false", "--set", "dataset.task=carry",
           "--set", "dataset.splits=[test]", "--set", "dataset.video_codec=h264",
@@ -190,6 +210,7 @@ def test_source_only_from_the_cli_h264_without_streaming(tmp_path: Path, inputs:
           "--report", str(tmp_path / "r.json")])
     report = json.loads((tmp_path / "r.json").read_text())
     assert report["datasets"]["expanded"] is None and report["datasets"]["source"]["episodes"] == 1
+    assert report[FLAG] is None  # no comparison, nothing to flag
     assert sorted(p.name for p in (tmp_path / "lerobot").iterdir()) == ["source"]
     ds = _load(tmp_path / "lerobot", "source")
     assert ds.num_episodes == 1 and ds.meta.features["observation.images.top"]["info"]["video.codec"] == "h264"

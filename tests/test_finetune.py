@@ -18,6 +18,7 @@ from lerobot.datasets import LeRobotDataset
 
 from stages.finetune import run, stage_params
 from wc.config import ParamsError, load_section
+from wc.policy.comparison import FLAG
 from wc.policy.finetune import (batches, build_trainer, dataset_metadata, finetune, load_policy, policy_config,
                                 save_policy, train_step)
 from wc.policy.policy_config import PolicyConfig
@@ -105,6 +106,7 @@ def test_stage_trains_both_datasets_with_identical_settings(data_root: Path, tmp
     assert np.isfinite(src["final_loss"]) and src["s_per_step_median"] > 0
     # the two datasets are copies here: same settings and seed must give the same run, bit for bit
     assert src["final_loss"] == exp["final_loss"]
+    assert saved[FLAG] is True  # copies: the report says the comparison compares nothing
     weights = [(tmp_path / "models" / n / "model.safetensors").read_bytes() for n in ("source", "expanded")]
     assert weights[0] == weights[1]
     summary = json.loads((tmp_path / "models" / "source" / "train_summary.json").read_text())

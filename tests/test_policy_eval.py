@@ -16,7 +16,9 @@ import torch
 import yaml
 
 from wc.config import ParamsError, load_section, read_params
+from wc.policy.comparison import FLAG, flagged_title
 from wc.policy.dataset import RIGHT_ARM
+from wc.policy.finetune import SUMMARY_FILE
 from wc.policy_eval.config import PolicyEvalConfig
 from wc.policy_eval.env import WorldContactLiftEnv
 from wc.policy_eval.rollout import OracleActor, run_episode
@@ -129,12 +131,14 @@ def _tiny_act(path: Path, seed: int) -> None:
 def test_stage_end_to_end(tmp_path: Path) -> None:
     for i, name in enumerate(("source", "expanded")):
         _tiny_act(tmp_path / "models" / name, seed=i)
+        (tmp_path / "models" / name / SUMMARY_FILE).write_text(json.dumps({"episodes": 3}))  # as finetune records
     params = _params(trials=1, seed=ORACLE_SEED, max_steps=2, videos=1)
     paths = dict(report=tmp_path / "policy.json", videos_dir=tmp_path / "videos", table=tmp_path / "rates.csv",
                  plot=tmp_path / "rates.png")
     report = run(params, tmp_path / "models", progress=False, **paths)
     saved = json.loads(paths["report"].read_text())
     assert saved["seeds"] == [ORACLE_SEED] and set(saved["success_rate"]) == {"source", "expanded"}
+    assert saved[FLAG] is True  # both trained on 3 episodes: no generated one
     for name in ("source", "expanded"):
         trial = saved["policies"][name]["outcomes"][0]
         assert trial["seed"] == ORACLE_SEED and trial["steps"] <= 2 and trial["success"] is False
@@ -146,6 +150,11 @@ def test_stage_end_to_end(tmp_path: Path) -> None:
     assert paths["plot"].stat().st_size > 0 and report["params_hash"] == saved["params_hash"]
     assert report["timing"]["s_per_step"]["source"] > 0
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temporary left behind
+
+
+def test_the_plot_title_says_when_the_arms_are_the_same() -> None:
+    assert "NO GENERATED EPISODES" in flagged_title("rates", True)
+    assert flagged_title("rates", False) == flagged_title("rates", None) == "rates"
 
 
 def test_missing_policy_and_bad_params_fail_clearly(tmp_path: Path) -> None:

@@ -20,6 +20,7 @@ class DatasetConfig:
     robot_type: str  # LeRobot metadata robot_type
     repo_owner: str  # local repo ids are <repo_owner>/source and <repo_owner>/expanded
     include_expanded: bool  # false: build the source dataset only (before the expand and render stages exist)
+    require_generated: bool  # true: no generated episode in the expanded store is an error (no hollow comparison)
     video_codec: str  # one of VIDEO_CODECS; lerobot's default is libsvtav1
     video_crf: int  # codec quality (lower: better and larger)
     video_gop_frames: int  # keyframe interval; small keeps random frame access cheap

@@ -5,8 +5,9 @@
 
 Both read their camera views from the rendered-frames stores of the `render` stage. With
 `dataset.include_expanded` true (the default) missing expanded inputs are an error, raised before
-anything is written; set it false to build the source dataset only. The report (counts, timings,
-params hash) goes to reports/dataset.json.
+anything is written; set it false to build the source dataset only. An expanded store without a generated
+episode of the task is flagged (`expanded_equals_source` in the report) or, with `dataset.require_generated`,
+an error. The report (counts, timings, params hash) goes to reports/dataset.json.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from typing import Any
 from wc.config import load_section, params_hash
 from wc.data.store import TrajectoryStore
 from wc.policy.card import dataset_card
+from wc.policy.comparison import FLAG, WARNING, expanded_equals_source
 from wc.policy.dataset import EpisodeSource, check_loads, select_episodes, write_lerobot_dataset
 from wc.policy.dataset_config import DatasetConfig
 from wc.reports import environment_info, write_json_atomic
@@ -65,9 +67,13 @@ def build_datasets(params: dict[str, Any],
     if cfg.include_expanded:
         exp = _open(paths["expanded trajectories"], paths["expanded frames"], "expanded")
         expanded, skipped["expanded"] = select_episodes("expanded", *exp, cfg.task)
-        if not expanded:  # the pipeline goes on, and the report says the two datasets hold the same episodes
+        if not expanded and cfg.require_generated:
+            raise ValueError(f"dataset: no accepted generated {cfg.task!r} episode in {paths['expanded trajectories']} "
+                             f"(skipped: {skipped['expanded']}), and dataset.require_generated is true: {WARNING}. "
+                             "Train a world model whose episodes pass the checks, or set it false")
+        if not expanded:  # the pipeline goes on, and the reports flag the comparison as hollow
             print(f"dataset: WARNING no accepted {cfg.task!r} episodes in {paths['expanded trajectories']} "
-                  f"(skipped: {skipped['expanded']}); the expanded dataset equals the source one", flush=True)
+                  f"(skipped: {skipped['expanded']}); {WARNING}", flush=True)
         plan["expanded"] = source + expanded
 
     datasets: dict[str, Any] = {"source": None, "expanded": None}
@@ -77,7 +83,9 @@ def build_datasets(params: dict[str, Any],
                                         lambda s, inputs=inputs: dataset_card(s, params_hash=digest, inputs=inputs))
         check_loads(out / name, summary["repo_id"], summary["episodes"], summary["frames"])
         datasets[name] = summary
-    result = {"datasets": datasets, "skipped_episodes": skipped, "include_expanded": cfg.include_expanded,
+    counts = {name: summary["episodes"] for name, summary in datasets.items() if summary is not None}
+    result = {FLAG: expanded_equals_source(counts), "datasets": datasets, "skipped_episodes": skipped,
+              "include_expanded": cfg.include_expanded,
               "generated_episodes": len(plan["expanded"]) - len(source) if "expanded" in plan else None,
               "params_hash": digest, "wall_s": time.perf_counter() - started, "environment": environment_info("cpu")}
     write_json_atomic(report, result)

@@ -18,7 +18,8 @@ from typing import Any
 from tqdm import tqdm
 
 from wc.config import load_section, params_hash
-from wc.policy.finetune import load_policy
+from wc.policy.comparison import FLAG, expanded_equals_source, trained_episodes
+from wc.policy.finetune import SUMMARY_FILE, load_policy
 from wc.policy.policy_config import PolicyConfig
 from wc.policy.pretrained import checkpoint_weights
 from wc.policy_eval.config import PolicyEvalConfig
@@ -91,12 +92,13 @@ def run(params: dict[str, Any], models_root: str | Path = "models/policy", repor
         replace_dir(tmp_videos, videos_dir)
     finally:
         shutil.rmtree(tmp_videos, ignore_errors=True)
+    equal = expanded_equals_source(trained_episodes(dirs, SUMMARY_FILE))
     write_success_table(table, policies)
-    plot_success_rates(plot, policies, cfg.task)
+    plot_success_rates(plot, policies, cfg.task, equal)
     timing |= {"wall_s": time.perf_counter() - started, "env_seconds": dict(env.seconds),
                "environment": environment_info(env.device)}
     result = {
-        "task": cfg.task, "instruction": env.instruction, "policy_type": policy_cfg.type,
+        FLAG: equal, "task": cfg.task, "instruction": env.instruction, "policy_type": policy_cfg.type,
         "trials": cfg.trials, "seeds": seeds, "episode_seeds": [cfg.seed_offset + s for s in seeds],
         "lift_height_m": cfg.lift_height_m, "hold_s": cfg.hold_s, "max_steps": cfg.max_steps,
         "success_rate": {n: p["success_rate"] for n, p in policies.items()},
