@@ -17,7 +17,8 @@ import yaml
 
 from wc.config import ParamsError, load_section, read_params
 from wc.policy.comparison import FLAG, flagged_title
-from wc.policy.dataset import RIGHT_ARM
+from wc.policy.dataset import RIGHT_ARM, create_dataset
+from wc.policy.dataset_config import DatasetConfig
 from wc.policy.finetune import SUMMARY_FILE
 from wc.policy_eval.config import PolicyEvalConfig
 from wc.policy_eval.env import WorldContactLiftEnv
@@ -87,6 +88,32 @@ def test_reset_and_step_shapes_and_frames(env: WorldContactLiftEnv) -> None:
     np.testing.assert_allclose(x_loop, x_open[3], rtol=0, atol=1e-6)
     with pytest.raises(ValueError, match=r"action must be \(7,\)"):
         env.step(np.zeros(14, np.float32))
+
+
+def test_the_policy_sees_frames_as_the_dataset_stored_them(env: WorldContactLiftEnv, tmp_path: Path) -> None:
+    """One rendered frame through both paths: written into a LeRobot dataset by the dataset stage's writer and
+    decoded by stock LeRobot (training), and through the env's observation (evaluation). Same size, RGB order,
+    and the codec's artefacts: the observation is far closer to the decoded training frame than the raw render is."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    obs, _ = env.reset(seed=ORACLE_SEED)
+    raw = env.raw_frames(env.x, env.planned_actions[0])
+    cfg = load_section(_params(), "dataset", DatasetConfig)
+    ds = create_dataset(tmp_path / "ds", "test/roundtrip", env.metadata["render_fps"], SIZE, SIZE, cfg)
+    for _ in range(3):
+        ds.add_frame({"observation.state": obs["agent_pos"], "action": obs["agent_pos"], "task": "t",
+                      **{f"observation.images.{cam}": raw[cam] for cam in ("top", "wrist")}})
+    ds.save_episode(parallel_encoding=False)
+    ds.finalize()
+    trained = LeRobotDataset("test/roundtrip", root=tmp_path / "ds", video_backend="pyav")[0]
+    for cam in ("top", "wrist"):
+        seen = np.round(trained[f"observation.images.{cam}"].numpy().transpose(1, 2, 0) * 255)
+        assert obs["pixels"][cam].shape == seen.shape == raw[cam].shape
+        to_obs, to_raw = np.abs(seen - obs["pixels"][cam]).mean(), np.abs(seen - raw[cam]).mean()
+        assert to_raw > 0.3 and to_obs < 0.2 * to_raw, (cam, to_obs, to_raw)  # here: 0 vs ~3 grey levels
+        channels = [np.corrcoef(seen[..., c].ravel(), obs["pixels"][cam][..., c].ravel())[0, 1] for c in range(3)]
+        assert min(channels) > 0.99, channels  # same colour order (a BGR swap would decorrelate R and B)
+        np.testing.assert_array_equal(obs["pixels"][cam], env.video(raw[cam]))
 
 
 def test_task_program_replayed_closed_loop_succeeds(env: WorldContactLiftEnv) -> None:

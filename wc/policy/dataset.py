@@ -31,6 +31,7 @@ from tqdm import tqdm
 
 from wc.data.store import ACTION_DIM, TrajectoryStore
 from wc.policy.dataset_config import DatasetConfig
+from wc.policy.video_roundtrip import video_encoder
 from wc.render.frames import RenderedStore
 from wc.reports import replace_dir
 
@@ -118,10 +119,14 @@ def _image_size(episodes: Sequence[EpisodeSource]) -> tuple[int, int]:
     return next(iter(sizes))
 
 
-def _video_encoder(cfg: DatasetConfig) -> Any:
-    from lerobot.configs.video import RGBEncoderConfig
+def create_dataset(root: Path, repo_id: str, fps: int, height: int, width: int, cfg: DatasetConfig) -> Any:
+    """An empty LeRobotDataset at `root` with the dataset stage's features and video encoder."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-    return RGBEncoderConfig(vcodec=cfg.video_codec, crf=cfg.video_crf, g=cfg.video_gop_frames)
+    return LeRobotDataset.create(repo_id, fps=fps, features=dataset_features(height, width), root=root,
+                                 robot_type=cfg.robot_type, use_videos=True, rgb_encoder=video_encoder(cfg),
+                                 encoder_threads=cfg.encoder_threads or None,
+                                 streaming_encoding=cfg.streaming_encoding, video_backend=VIDEO_BACKEND)
 
 
 def _check_target(path: Path) -> None:
@@ -153,8 +158,6 @@ def write_lerobot_dataset(out: str | Path, repo_id: str, episodes: Sequence[Epis
                           card: Callable[[dict[str, Any]], str]) -> dict[str, Any]:
     """Write `episodes` as a LeRobot v3 dataset at `out` (atomically) with a dataset card README.md made by
     `card(summary)`; returns the summary {repo_id, path, episodes, frames, fps, image_size, wall_s, ...}."""
-    from lerobot.datasets.lerobot_dataset import LeRobotDataset
-
     out = Path(out)
     if not episodes:
         raise ValueError(f"no episodes to write to {out}")
@@ -168,10 +171,7 @@ def write_lerobot_dataset(out: str | Path, repo_id: str, episodes: Sequence[Epis
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(f".{out.name}.tmp-{os.getpid()}-{secrets.token_hex(4)}")
     try:
-        ds = LeRobotDataset.create(repo_id, fps=fps, features=dataset_features(height, width), root=tmp,
-                                   robot_type=cfg.robot_type, use_videos=True, rgb_encoder=_video_encoder(cfg),
-                                   encoder_threads=cfg.encoder_threads or None,
-                                   streaming_encoding=cfg.streaming_encoding, video_backend=VIDEO_BACKEND)
+        ds = create_dataset(tmp, repo_id, fps, height, width, cfg)
         frames = 0
         for e in tqdm(episodes, desc=f"dataset {out.name}", unit="episode"):
             state, action = right_arm_state_action(e.trajectories.read_episode(e.episode_id, ("action",))["action"])

@@ -8,8 +8,9 @@ it, and its initial state is sampled, settled and planned exactly as the data-ge
 step(action (7,)): right arm q_R (6, rad) + gripper opening d_R (m), the dataset's `action` format. The
 14-D command keeps the left arm where the task program holds it; the kinematic robot moves from the
 current command to the new one over one frame (`sim.substeps` solver steps), then both cameras render
-the new state with the render stage's renderer. Observations: pixels.top / pixels.wrist (H, W, 3) uint8
-and agent_pos (7,) float32 = the commanded right arm (the dataset's observation.state).
+the new state with the render stage's renderer, and each frame goes through the dataset's video encode and
+decode (wc.policy.video_roundtrip), so the policy sees what it was trained on. Observations: pixels.top /
+pixels.wrist (H, W, 3) uint8 RGB and agent_pos (7,) float32 = the commanded right arm (the dataset's observation.state).
 
 Success (info["is_success"], reward 1, terminated): the bag's lowest vertex >= lift_height_m above the
 table top at every frame for hold_s. Also terminated: a non-finite action or physics state; truncated:
@@ -30,10 +31,12 @@ from wc.agent.runner import build_task_world, reset_batch
 from wc.config import ParamsError, load_section, read_params
 from wc.dynamics import ObjectState
 from wc.policy.dataset import RIGHT_ARM, fps_of
+from wc.policy.dataset_config import DatasetConfig
 from wc.policy.policy_config import PolicyConfig
 from wc.policy_eval.config import POLICY_SEEDS, PolicyEvalConfig
 from wc.policy_eval.stepper import FrameStepper
 from wc.policy_eval.success import LiftHoldMonitor, hold_frames
+from wc.policy.video_roundtrip import VideoRoundTrip
 from wc.render.config import RenderConfig
 from wc.render.geometry import scene_geometry
 from wc.render.renderer import EpisodeRenderer
@@ -87,6 +90,7 @@ class WorldContactLiftEnv(gym.Env):
         except ValueError as err:
             raise ParamsError(f"{params.get('_source', '<params>')}: {err}") from err
         self.renderer = EpisodeRenderer(scene_geometry(self.scene), cameras, self.device, 1, render_cfg.shadows)
+        self.video = VideoRoundTrip(load_section(params, "dataset", DatasetConfig), fps_of(sim_cfg.frame_dt_s))
         self.cameras = list(cameras)
         self.metadata = {**self.metadata, "render_fps": fps_of(self.frame_dt_s)}
         self.render_mode = render_mode
@@ -185,11 +189,16 @@ class WorldContactLiftEnv(gym.Env):
     def _lowest_height(self, x: np.ndarray) -> float:
         return float(lowest_height(self.scene, x[None])[0])
 
+    def raw_frames(self, x: np.ndarray, command: np.ndarray) -> dict[str, np.ndarray]:
+        """Each camera's render (H, W, 3) of state x under the robot command, before the video round trip."""
+        frames = self.renderer.render(x[None], self.scene.link_poses(command)[None], "policy_eval")
+        return {n: frames[n][0] for n in self.cameras}
+
     def _observe(self, x: np.ndarray, command: np.ndarray) -> dict[str, Any]:
         tic = time.perf_counter()
-        frames = self.renderer.render(x[None], self.scene.link_poses(command)[None], "policy_eval")
+        pixels = {n: self.video(frame) for n, frame in self.raw_frames(x, command).items()}  # as the dataset stored it
         self.seconds["render"] += time.perf_counter() - tic
-        return {"pixels": {n: frames[n][0] for n in self.cameras},
+        return {"pixels": pixels,
                 "agent_pos": np.asarray(command[RIGHT_ARM], np.float32)}
 
     def _info(self, success: bool, height: float) -> dict[str, Any]:

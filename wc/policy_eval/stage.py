@@ -29,7 +29,7 @@ from wc.policy_eval.rollout import PolicyActor, run_episode
 from wc.policy_eval.videos import write_mp4
 from wc.reports import environment_info, replace_dir, write_json_atomic
 
-SECTIONS = ["policy_eval", "policy", "scene", "sim", "render", "tasks"]
+SECTIONS = ["policy_eval", "policy", "scene", "sim", "render", "tasks", "dataset"]
 
 
 def policy_dirs(models_root: str | Path, names: list[str] | tuple[str, ...]) -> dict[str, Path]:
