@@ -1,0 +1,115 @@
+"""World-model training on K processes of one host (issue 23): steps/s, samples/s and scaling efficiency per K.
+
+    python -m benchmarks.train_scaling --store data/source/trajectories.zarr --tag h200x8 [--procs 1,2,4,8]
+        [--samples 19200] [--batch 8] [--params params.yaml] [--set train.compile=true ...] [--out-dir reports/gpu]
+    -> <out-dir>/train_scaling_<tag>.json (+ .md), a row per K with gpus, steps_per_s, samples_per_s, efficiency
+
+For each K: `torchrun --nproc-per-node K -m stages.train` on the static-shape path with the same per-process batch,
+for --samples / (K x batch) steps, so every K trains on the same number of samples: its validation loss after them
+should agree across K within noise. steps/s is the report's median step time (warm-up excluded); samples/s =
+K x batch x steps/s; efficiency = samples/s(K) / (K x samples/s(1)). Under DDP the step is not CUDA-graphed (the
+gradient all-reduce runs between the backward and the update). NVLink multicast stays off in every process
+(NCCL_NVLS_ENABLE=0, TORCH_SYMM_MEM_DISABLE_MULTICAST=1, NVSHMEM_DISABLE_NVLS=1). Without CUDA the processes use
+gloo on the CPU: the same code path, a check, not a speed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from wc.reports import environment_info, write_json_atomic
+
+MULTICAST_OFF = {"NCCL_NVLS_ENABLE": "0", "TORCH_SYMM_MEM_DISABLE_MULTICAST": "1", "NVSHMEM_DISABLE_NVLS": "1"}
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def run_k(k: int, steps: int, args: argparse.Namespace, work: Path, device: str) -> dict[str, Any]:
+    """One torchrun of K processes; its train report plus the wall time."""
+    report = work / f"k{k}.json"
+    overrides = ["--set", f"train.device={device}", "--set", "train.static=true", "--set", f"train.batch_size={args.batch}",
+                 "--set", f"train.base.steps={steps}", "--set", f"train.base.warmup_steps={max(1, steps // 10)}",
+                 "--set", "train.projection.steps=0", "--set", "train.projection.warmup_steps=0",
+                 "--set", f"train.eval_every_steps={steps}", "--set", f"train.checkpoint_every_steps={steps}",
+                 *[a for s in args.overrides for a in ("--set", s)]]
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc-per-node", str(k), "--master-port", str(free_port()),
+           "-m", "stages.train", "--params", args.params, "--store", args.store, "--out", str(work / f"model_k{k}"),
+           "--report", str(report), "--curves", str(work / f"curves_k{k}.csv"), *overrides]
+    env = {**os.environ, **MULTICAST_OFF, "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", "1")}
+    started = time.perf_counter()
+    done = subprocess.run(cmd, capture_output=True, text=True, env=env)
+    wall = time.perf_counter() - started
+    if done.returncode != 0:
+        return {"gpus": k, "error": done.stderr[-3000:]}
+    r = json.loads(report.read_text())
+    steps_per_s = 1.0 / r["s_per_step_median"]
+    return {"gpus": k, "processes": r["processes"], "steps": steps, "batch_per_process": args.batch,
+            "steps_per_s": steps_per_s, "samples_per_s": k * args.batch * steps_per_s, "wall_s": wall,
+            "val_loss_after_samples": r["history"][-1]["val_loss"], "samples": k * args.batch * steps}
+
+
+def markdown(report: dict[str, Any]) -> str:
+    lines = [f"# World-model training scaling ({report['tag']})", "",
+             f"{report['environment'].get('gpu', report['device'])}, torch {report['environment']['torch']}; "
+             f"{report['samples']} samples per K, batch {report['batch']} per process.", "",
+             "| gpus | steps/s | samples/s | efficiency | val loss after the samples |", "|---|---|---|---|---|"]
+    for r in report["rows"]:
+        if "error" in r:
+            lines.append(f"| {r['gpus']} | failed: {r['error'][-120:]!r} | | | |")
+        else:
+            lines.append(f"| {r['gpus']} | {r['steps_per_s']:.2f} | {r['samples_per_s']:.1f} | {r['efficiency']:.2f} | "
+                         f"{r['val_loss_after_samples']:.4g} |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--params", default="params.yaml")
+    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
+    parser.add_argument("--store", default="data/source/trajectories.zarr")
+    parser.add_argument("--procs", default=None, help="comma-separated K (default 1, 2, 4, ... up to the GPU count)")
+    parser.add_argument("--samples", type=int, default=19200)
+    parser.add_argument("--batch", type=int, default=8)
+    parser.add_argument("--tag", default="cpu")
+    parser.add_argument("--out-dir", default="reports/gpu")
+    args = parser.parse_args(argv)
+    gpus = torch.cuda.device_count()
+    device = "cuda" if gpus else "cpu"
+    ks = ([int(k) for k in args.procs.split(",")] if args.procs
+          else [k for k in (1, 2, 4, 8) if k <= max(gpus, 2)])
+    if gpus and max(ks) > gpus:
+        raise SystemExit(f"train_scaling: asked for {max(ks)} processes, the machine has {gpus} GPUs")
+    work = Path(tempfile.mkdtemp(prefix="train_scaling_"))
+    report: dict[str, Any] = {"tag": args.tag, "device": device, "samples": args.samples, "batch": args.batch,
+                              "environment": environment_info(device), "multicast_off": MULTICAST_OFF, "rows": []}
+    if gpus:
+        report["environment"]["gpu"] = f"{gpus} x {torch.cuda.get_device_name(0)}"
+    out = Path(args.out_dir) / f"train_scaling_{args.tag}.json"
+    for k in ks:
+        row = run_k(k, max(1, args.samples // (k * args.batch)), args, work, device)
+        base = next((r for r in report["rows"] if r.get("gpus") == 1 and "samples_per_s" in r), row)
+        if "samples_per_s" in row and "samples_per_s" in base:
+            row["efficiency"] = row["samples_per_s"] / (k * base["samples_per_s"])
+        report["rows"].append(row)
+        write_json_atomic(out, report)
+        out.with_suffix(".md").write_text(markdown(report))
+        print(markdown(report), flush=True)
+
+
+if __name__ == "__main__":
+    main()
