@@ -29,6 +29,7 @@ from wc.train.config import Schedule, TrainConfig
 from wc.train.data import episode_phases, read_phase_window, split_blocks, windows_of
 from wc.train.evaluation import segment_loss
 from wc.train.schedule import learning_rate
+from wc.train.selection import max_edge_strain, selection_score
 
 EPISODES = [("fall", "train"), ("carry", "train"), ("handoff", "train"), ("fall", "train"), ("fall", "val"),
             ("carry", "val")]
@@ -213,6 +214,51 @@ def test_resume_continues_from_the_partial_checkpoint(store_path, params, tmp_pa
     second["train"]["projection"].update(steps=0, warmup_steps=0)
     report = run(second, store_path, out, tmp_path / "b.json", tmp_path / "b.csv", resume=True)
     assert [h["step"] for h in report["history"]] == [3, 6]
+
+
+def test_edge_strain_and_selection_scores():
+    x = torch.tensor([[[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 2.0, 0.0]]])  # edges at rest lengths 1, 1
+    edges, rest = torch.tensor([[0, 1], [1, 2]]), torch.tensor([1.0, 1.0])
+    assert max_edge_strain(x, edges, rest) == pytest.approx(1.0)  # the second edge doubled
+    assert max_edge_strain(x * float("nan"), edges, rest) == float("inf")
+    good = {"val_loss": 5.0, "rollout_position_mse_m2": 1e-4, "rollout_diverged": 0}
+    assert selection_score(good, "val_loss") == 5.0 and selection_score(good, "rollout") == 1e-4
+    assert selection_score({**good, "rollout_diverged": 1}, "rollout") == float("inf")
+    assert selection_score({**good, "rollout_position_mse_m2": float("nan")}, "rollout") == float("inf")
+
+
+def test_rollout_selection_ships_the_best_held_out_rollout_never_a_diverged_one(store_path, params, tmp_path):
+    """select_by rollout: the shipped checkpoint is the evaluation with the lowest held-out rollout MSE among those
+    that did not diverge; a strain limit every rollout breaks leaves each stage its first checkpoint, scored inf."""
+    p = copy.deepcopy(params)
+    p["train"].update(select_by="rollout", eval_every_steps=2)
+    report = run(p, store_path, tmp_path / "m", tmp_path / "r.json", tmp_path / "c.csv")
+    history = report["history"]
+    assert report["selected_by"] == "rollout" and all("rollout_max_strain" in h for h in history)
+    finite = [h for h in history if h["rollout_diverged"] == 0]
+    assert finite, "no evaluation without a diverged rollout on the tiny store"
+    best = min(finite, key=lambda h: h["rollout_position_mse_m2"])
+    assert report["best_score"] == best["rollout_position_mse_m2"] and report["final_stage"] == best["stage"]
+    _, meta = load_model(tmp_path / "m" / "model.safetensors")
+    assert meta["step"] == best["step"] == report["selected"]["step"]
+
+    strict = copy.deepcopy(p)
+    strict["train"]["select_max_strain"] = 1e-9  # every rollout "diverges"
+    report = run(strict, store_path, tmp_path / "s", tmp_path / "s.json", tmp_path / "s.csv")
+    assert all(h["rollout_diverged"] > 0 and h["score"] == float("inf") for h in report["history"])
+    _, meta = load_model(tmp_path / "s" / "model.safetensors")
+    assert meta["step"] == min(h["step"] for h in report["history"] if h["stage"] == report["final_stage"])
+
+
+def test_rollout_selection_needs_whole_held_out_episodes(params, tmp_path):
+    store = write_synthetic_store(tmp_path / "s.zarr", params, [("fall", "train"), ("carry", "train")], frames=10)
+    p = copy.deepcopy(params)
+    p["train"]["select_by"] = "rollout"
+    with pytest.raises(ValueError, match="no val split"):
+        run(p, store, tmp_path / "m", tmp_path / "r.json", tmp_path / "c.csv")
+    p["train"]["select_by"] = "best_guess"
+    with pytest.raises(ParamsError, match="select_by"):
+        load_section(p, "train", TrainConfig)
 
 
 def test_missing_store_and_bad_params(params, tmp_path):

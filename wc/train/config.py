@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from wc.train.selection import SELECT_BY
+
 
 @dataclass(frozen=True)
 class Schedule:
@@ -45,6 +47,8 @@ class TrainConfig:
     eval_every_steps: int = 50  # validation loss + held-out rollout error, logged as one "epoch"
     val_windows: int = 32  # validation segments per evaluation (a fixed, seeded subset)
     rollout_frames: int = 25  # held-out autoregressive rollout length per validation episode
+    select_by: str = "val_loss"  # checkpoint score: val_loss (W-frame windows) | rollout (held-out episodes; wc/train/selection.py)
+    select_max_strain: float = 1.0  # rollout: a rollout with a rest edge stretched beyond this has diverged (never selected)
     holdout_fraction: float = 0.25  # with no val split: this share of each train episode validates ...
     holdout_block_frames: int = 12  # ... as interleaved blocks of this many frames (wc.train.data.split_blocks)
     stats_episodes: int = 32  # episodes read to set the input/output scales
@@ -80,6 +84,10 @@ class TrainConfig:
             raise ValueError(f"neighbor_headroom must be >= 1, got {self.neighbor_headroom}")
         if self.input_noise_m < 0:
             raise ValueError(f"input_noise_m must be >= 0 m, got {self.input_noise_m}")
+        if self.select_by not in SELECT_BY:
+            raise ValueError(f"select_by must be one of {SELECT_BY}, got {self.select_by!r}")
+        if not self.select_max_strain > 0:
+            raise ValueError(f"select_max_strain must be positive, got {self.select_max_strain}")
         if self.max_minutes < 0:
             raise ValueError(f"max_minutes must be >= 0 (0 = no limit), got {self.max_minutes}")
         for name in ("eval_every_steps", "val_windows", "holdout_block_frames", "rollout_frames", "stats_episodes", "checkpoint_every_steps"):

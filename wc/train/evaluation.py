@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 
 import numpy as np
@@ -13,6 +14,7 @@ from wc.model.layout import SceneLayout
 from wc.model.rollout import rollout, rollout_within_capacity
 from wc.model.worldcontact import WorldContact
 from wc.train.data import LayoutKey, Phase, Window, read_phase_window
+from wc.train.selection import max_edge_strain
 
 LayoutFor = Callable[[LayoutKey], SceneLayout]
 Projector = Callable[[SceneLayout], object]  # layout -> TopologyProjection | None
@@ -102,16 +104,23 @@ def phase_rollout_errors(store: TrajectoryStore, phases: list[Phase], frames: in
 @torch.no_grad()
 def rollout_error(model: WorldContact, store: TrajectoryStore, phases: list[Phase], frames: int,
                   layout_for: LayoutFor, projector: Projector, dt: float, device: torch.device,
-                  neighbors_for: NeighborsFor | None = None) -> dict[str, float]:
-    """`phase_rollout_errors` of WorldContact's autoregressive rollouts (eval mode, the stage's projection)."""
+                  neighbors_for: NeighborsFor | None = None, max_strain: float = math.inf) -> dict[str, float]:
+    """`phase_rollout_errors` of WorldContact's autoregressive rollouts (eval mode, the stage's projection), with the
+    largest rest-edge strain of any rollout and how many rollouts diverged (non-finite, or strain > max_strain)."""
+    strains: list[float] = []
+
     def predict(p: Phase, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         layout = layout_for(p.layout)
-        return _rollout(model, layout, batch["x"][:, 0], batch["v"][:, 0], batch["poses"], dt, projector(layout),
-                        neighbors_for(layout) if neighbors_for else None)[0]
+        x_pred = _rollout(model, layout, batch["x"][:, 0], batch["v"][:, 0], batch["poses"], dt, projector(layout),
+                          neighbors_for(layout) if neighbors_for else None)[0]
+        strains.append(max_edge_strain(x_pred, layout.edges, layout.rest_lengths))
+        return x_pred
 
     was_training = model.training
     model.eval()
     try:
-        return phase_rollout_errors(store, phases, frames, device, predict)
+        errors = phase_rollout_errors(store, phases, frames, device, predict)
     finally:
         model.train(was_training)
+    return {**errors, "rollout_max_strain": max(strains, default=math.nan),
+            "rollout_diverged": sum(not strain <= max_strain for strain in strains)}

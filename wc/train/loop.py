@@ -36,6 +36,7 @@ from wc.train.config import TrainConfig
 from wc.train.data import (LayoutBatchSampler, LayoutKey, Phase, Scales, Window, WindowDataset, data_scales,
                            phases_of, split_blocks, windows_of)
 from wc.train.evaluation import rollout_error, segment_loss, validation_losses
+from wc.train.selection import selection_score
 from wc.train.noise import noisy_state
 from wc.train.resident import ResidentWindows
 from wc.train.schedule import learning_rate
@@ -61,6 +62,9 @@ def prepare_data(store: TrajectoryStore, cfg: TrainConfig) -> TrainData:
         raise ValueError(f"{store.path}: no train episodes")
     val_phases = phases_of(store, "val")
     validation = "val split"
+    if not val_phases and cfg.select_by == "rollout":
+        raise ValueError(f"{store.path}: train.select_by rollout scores checkpoints on whole held-out episodes, and the "
+                         "store has no val split (set validate.val_per_task >= 1, or train.select_by val_loss)")
     if not val_phases:
         train_phases, val_phases = split_blocks(train_phases, cfg.holdout_fraction, cfg.holdout_block_frames,
                                                 cfg.window)
@@ -232,12 +236,14 @@ def train(store_path: str | Path, out_dir: str | Path, model_cfg: ModelConfig, c
             losses = validation_losses(model, store, data.val_windows, cfg.window, layout_for, projector, store.dt,
                                        cfg.lambda_x, cfg.lambda_v, procs.device, cfg.batch_size, neighbors_for)
             losses.update(rollout_error(model, store, data.val_phases, cfg.rollout_frames, layout_for, projector,
-                                        store.dt, procs.device, neighbors_for))
+                                        store.dt, procs.device, neighbors_for, cfg.select_max_strain))
+            losses["score"] = selection_score(losses, cfg.select_by)
             history.append({"step": step, "stage": stage, "lr": lr, "train_loss": float(np.mean(recent)), **losses})
             recent = []
             bar.set_postfix(train=f"{history[-1]['train_loss']:.3g}", val=f"{losses['val_loss']:.3g}")
-            if losses["val_loss"] < best[stage]:
-                best[stage] = losses["val_loss"]
+            first = not any(h["stage"] == stage for h in history[:-1])  # saved even when it diverged: a stage ships something
+            if losses["score"] < best[stage] or first:
+                best[stage] = losses["score"]
                 save_weights(model, work / f"{stage}.safetensors",
                              {**meta, **static_meta(), "step": step, "stage": stage,
                               "projection": stage == "projection", **losses})
@@ -291,9 +297,12 @@ def _finish(model: WorldContact, work: Path, out_dir: Path, cfg: TrainConfig, da
     Both stages' validation losses compare rollouts with the truth on the same windows, so the projection
     stage's model ships only when it validates better than the base stage's.
     """
-    best = {stage: min((h["val_loss"] for h in history if h["stage"] == stage), default=float("inf"))
-            for stage in ("base", "projection")}
+    best = {stage: min((h["score"] for h in history if h["stage"] == stage), default=float("inf"))
+            for stage in ("base", "projection") if (work / f"{stage}.safetensors").is_file()}
     final = min(best, key=lambda stage: best[stage])
+    if not np.isfinite(best[final]) and cfg.select_by == "rollout":
+        print(f"train: WARNING every evaluation's held-out rollouts diverged; shipping the {final} stage's first "
+              "checkpoint", flush=True)
     for suffix in (".safetensors", ".json"):
         shutil.copyfile(work / f"{final}{suffix}", work / f"model{suffix}")
     if out_dir.exists():
@@ -307,8 +316,11 @@ def _finish(model: WorldContact, work: Path, out_dir: Path, cfg: TrainConfig, da
         "steps": {"base": cfg.base.steps, "projection": cfg.projection.steps},
         "train_windows": len(data.train_windows), "val_windows": len(data.val_windows),
         "scales": asdict(data.scales), "history": history,
-        "best_val_loss": best[final],
-        "best_val_loss_by_stage": {stage: loss for stage, loss in best.items() if np.isfinite(loss)},
+        "selected_by": cfg.select_by, "best_score": best[final],
+        "selected": next((h for h in history if h["stage"] == final and h["score"] == best[final]), {}),
+        "best_val_loss": min((h["val_loss"] for h in history if h["stage"] == final), default=float("nan")),
+        "best_val_loss_by_stage": {stage: min(h["val_loss"] for h in history if h["stage"] == stage)
+                                   for stage in best if any(h["stage"] == stage for h in history)},
         "zero_motion_val_loss": last.get("zero_motion_loss", float("nan")),
         "constant_velocity_val_loss": last.get("constant_velocity_loss", float("nan")),
         "rollout_position_mse_m2": last.get("rollout_position_mse_m2", float("nan")),
