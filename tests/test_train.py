@@ -26,7 +26,8 @@ from wc.model.rollout import rollout
 from wc.model.worldcontact import WorldContact
 from wc.train.checkpoint import load_model, save_weights
 from wc.train.config import Schedule, TrainConfig
-from wc.train.data import episode_phases, read_phase_window, split_blocks, windows_of
+from wc.train.data import LayoutBatchSampler, episode_phases, read_phase_window, split_blocks, windows_of
+from wc.train.events import event_frames
 from wc.train.evaluation import segment_loss
 from wc.train.schedule import learning_rate
 from wc.train.selection import max_edge_strain, selection_score
@@ -258,6 +259,40 @@ def test_rollout_selection_needs_whole_held_out_episodes(params, tmp_path):
         run(p, store, tmp_path / "m", tmp_path / "r.json", tmp_path / "c.csv")
     p["train"]["select_by"] = "best_guess"
     with pytest.raises(ParamsError, match="select_by"):
+        load_section(p, "train", TrainConfig)
+
+
+def test_contact_events_are_gripper_moves_and_impacts():
+    action = np.zeros((10, 14))
+    action[4:, 13] = 0.01  # the right pads close between frames 3 and 4
+    v = np.zeros((10, 5, 3))
+    v[7:, 2, 2] = 0.5  # one vertex jumps by 0.5 m/s between frames 6 and 7: 12.5 m/s^2 at dt 0.04
+    events = event_frames(action, v, 0.04, accel_m_s2=8.0)
+    assert np.flatnonzero(events).tolist() == [4, 7]
+    assert np.flatnonzero(event_frames(action, v, 0.04, accel_m_s2=20.0)).tolist() == [4]
+
+
+def test_weighted_sampler_oversamples_and_checks_its_weights(store_path):
+    store = TrajectoryStore(store_path)
+    windows = windows_of([p for e in store.episode_ids for p in episode_phases(store, e)], 5)
+    weights = np.ones(len(windows))
+    weights[0] = 50.0
+    draws = LayoutBatchSampler(windows, 4, seed=0, weights=weights)
+    counts = np.bincount(np.concatenate([next(iter(draws)) for _ in range(400)]), minlength=len(windows))
+    same_layout = [i for i, w in enumerate(windows) if w.phase.layout == windows[0].phase.layout]
+    assert counts[0] > 10 * np.mean(counts[same_layout[1:]])
+    with pytest.raises(ValueError, match="positive"):
+        LayoutBatchSampler(windows, 4, seed=0, weights=np.zeros(len(windows)))
+
+
+def test_event_oversampling_in_a_training_run(store_path, params, tmp_path):
+    p = copy.deepcopy(params)
+    p["train"].update(event_oversample=3.0, event_accel_m_s2=1.0)
+    p["train"]["projection"].update(steps=0, warmup_steps=0)
+    report = run(p, store_path, tmp_path / "m", tmp_path / "r.json", tmp_path / "c.csv")
+    assert 0.0 < report["event_window_share"] <= 1.0 and report["event_oversample"] == 3.0
+    p["train"]["event_oversample"] = -1.0
+    with pytest.raises(ParamsError, match="event_oversample"):
         load_section(p, "train", TrainConfig)
 
 

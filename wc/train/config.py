@@ -48,6 +48,9 @@ class TrainConfig:
     val_windows: int = 32  # validation segments per evaluation (a fixed, seeded subset)
     rollout_frames: int = 25  # held-out autoregressive rollout length per validation episode
     select_by: str = "val_loss"  # checkpoint score: val_loss (W-frame windows) | rollout (held-out episodes; wc/train/selection.py)
+    event_oversample: float = 0.0  # windows near a contact event drawn 1 + this times as often (wc/train/events.py; 0 = off)
+    event_margin_frames: int = 2  # ... within this many frames of one
+    event_accel_m_s2: float = 8.0  # a vertex accelerating beyond this between frames is an impact event
     select_max_strain: float = 1.0  # rollout: a rollout with a rest edge stretched beyond this has diverged (never selected)
     holdout_fraction: float = 0.25  # with no val split: this share of each train episode validates ...
     holdout_block_frames: int = 12  # ... as interleaved blocks of this many frames (wc.train.data.split_blocks)
@@ -84,6 +87,9 @@ class TrainConfig:
             raise ValueError(f"neighbor_headroom must be >= 1, got {self.neighbor_headroom}")
         if self.input_noise_m < 0:
             raise ValueError(f"input_noise_m must be >= 0 m, got {self.input_noise_m}")
+        if self.event_oversample < 0 or self.event_margin_frames < 0 or not self.event_accel_m_s2 > 0:
+            raise ValueError(f"event_oversample and event_margin_frames must be >= 0 and event_accel_m_s2 positive, got "
+                             f"{self.event_oversample}, {self.event_margin_frames}, {self.event_accel_m_s2}")
         if self.select_by not in SELECT_BY:
             raise ValueError(f"select_by must be one of {SELECT_BY}, got {self.select_by!r}")
         if not self.select_max_strain > 0:

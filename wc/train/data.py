@@ -134,17 +134,23 @@ class WindowDataset(Dataset[dict[str, torch.Tensor]]):
 class LayoutBatchSampler(torch.utils.data.Sampler[list[int]]):
     """Endless seeded batches of `batch_size` window indices, each batch from one layout.
 
-    A layout is drawn with probability proportional to its window count; `rank`/`world_size`
-    give each process of a distributed run its own stream.
+    A layout is drawn with probability proportional to its window count (or its windows' summed `weights`), then
+    windows uniformly (or in proportion to `weights`, e.g. wc.train.events); `rank` gives each process of a
+    distributed run its own stream.
     """
 
-    def __init__(self, windows: list[Window], batch_size: int, seed: int, rank: int = 0) -> None:
+    def __init__(self, windows: list[Window], batch_size: int, seed: int, rank: int = 0,
+                 weights: np.ndarray | None = None) -> None:
+        if weights is not None and (len(weights) != len(windows) or not (np.asarray(weights) > 0).all()):
+            raise ValueError(f"sampling weights must be {len(windows)} positive values, one per window")
         groups: dict[LayoutKey, list[int]] = {}
         for i, w in enumerate(windows):
             groups.setdefault(w.phase.layout, []).append(i)
         self.groups = [np.asarray(g) for g in groups.values()]
-        sizes = np.array([len(g) for g in self.groups], dtype=np.float64)
-        self.weights = sizes / sizes.sum()
+        window_w = np.ones(len(windows)) if weights is None else np.asarray(weights, dtype=np.float64)
+        mass = np.array([window_w[g].sum() for g in self.groups])
+        self.weights = mass / mass.sum()
+        self.within = None if weights is None else [window_w[g] / window_w[g].sum() for g in self.groups]
         self.batch_size = batch_size
         self.rng = np.random.default_rng([seed, rank])
 
@@ -157,8 +163,12 @@ class LayoutBatchSampler(torch.utils.data.Sampler[list[int]]):
 
     def __iter__(self):  # noqa: ANN204 - infinite iterator
         while True:
-            group = self.groups[self.rng.choice(len(self.groups), p=self.weights)]
-            yield group[self.rng.integers(0, len(group), size=self.batch_size)].tolist()
+            g = self.rng.choice(len(self.groups), p=self.weights)
+            group = self.groups[g]
+            if self.within is None:
+                yield group[self.rng.integers(0, len(group), size=self.batch_size)].tolist()
+            else:
+                yield group[self.rng.choice(len(group), size=self.batch_size, p=self.within[g])].tolist()
 
 
 @dataclass(frozen=True)

@@ -35,6 +35,7 @@ from wc.train.checkpoint import load_state, restore_rng_states, rng_states, save
 from wc.train.config import TrainConfig
 from wc.train.data import (LayoutBatchSampler, LayoutKey, Phase, Scales, Window, WindowDataset, data_scales,
                            phases_of, split_blocks, windows_of)
+from wc.train.events import window_weights
 from wc.train.evaluation import rollout_error, segment_loss, validation_losses
 from wc.train.selection import selection_score
 from wc.train.noise import noisy_state
@@ -53,6 +54,8 @@ class TrainData:
     val_phases: list[Phase]  # held-out rollouts
     scales: Scales
     validation: str  # how validation data was chosen
+    window_weights: np.ndarray | None = None  # sampling weight per train window (None: uniform; wc.train.events)
+    event_share: float = float("nan")  # share of train windows near a contact event
 
 
 def prepare_data(store: TrajectoryStore, cfg: TrainConfig) -> TrainData:
@@ -76,8 +79,10 @@ def prepare_data(store: TrajectoryStore, cfg: TrainConfig) -> TrainData:
         raise ValueError(f"{store.path}: {len(train_windows)} train and {len(val_all)} validation windows of "
                          f"{cfg.window} frames; need at least one of each")
     pick = np.random.default_rng(cfg.seed).permutation(len(val_all))[: cfg.val_windows]
+    weights, share = window_weights(store, train_phases, train_windows, cfg.window, cfg.event_oversample,
+                                    cfg.event_margin_frames, cfg.event_accel_m_s2)
     return TrainData(train_windows, train_phases, [val_all[i] for i in sorted(pick)], val_phases,
-                     data_scales(store, train_phases, cfg.stats_episodes), validation)
+                     data_scales(store, train_phases, cfg.stats_episodes), validation, weights, share)
 
 
 class SegmentRollout(nn.Module):
@@ -157,7 +162,7 @@ def train(store_path: str | Path, out_dir: str | Path, model_cfg: ModelConfig, c
     model = WorldContact(model_cfg, **asdict(data.scales)).to(procs.device)
     layout_for = _layouts(store, model_cfg, procs.device)
     optimizer = make_optimizer(model, cfg, procs.device)
-    sampler = LayoutBatchSampler(data.train_windows, cfg.batch_size, cfg.seed, procs.rank)
+    sampler = LayoutBatchSampler(data.train_windows, cfg.batch_size, cfg.seed, procs.rank, data.window_weights)
     step, history, recent, best = 0, [], [], {"base": float("inf"), "projection": float("inf")}
     capacities, measured = None, None
     state_path = work / "last_state.pt"
@@ -172,7 +177,8 @@ def train(store_path: str | Path, out_dir: str | Path, model_cfg: ModelConfig, c
         if procs.main:  # other ranks of a resumed DDP run draw fresh streams
             sampler.set_state(state["sampler"])
         else:
-            sampler = LayoutBatchSampler(data.train_windows, cfg.batch_size, cfg.seed + step, procs.rank)
+            sampler = LayoutBatchSampler(data.train_windows, cfg.batch_size, cfg.seed + step, procs.rank,
+                                         data.window_weights)
     elif procs.main:
         shutil.rmtree(work, ignore_errors=True)
     distributed.barrier(procs)
@@ -315,6 +321,7 @@ def _finish(model: WorldContact, work: Path, out_dir: Path, cfg: TrainConfig, da
         "parameters": model.parameter_counts(), "final_stage": final, "validation": data.validation,
         "steps": {"base": cfg.base.steps, "projection": cfg.projection.steps},
         "train_windows": len(data.train_windows), "val_windows": len(data.val_windows),
+        "event_window_share": data.event_share, "event_oversample": cfg.event_oversample,
         "scales": asdict(data.scales), "history": history,
         "selected_by": cfg.select_by, "best_score": best[final],
         "selected": next((h for h in history if h["stage"] == final and h["score"] == best[final]), {}),
