@@ -21,12 +21,12 @@ from tests.synthetic_store import default_params, write_synthetic_store
 from wc.config import ParamsError, load_section
 from wc.data.store import TrajectoryStore
 from wc.model.config import ModelConfig
-from wc.model.layout import scene_layout
+from wc.model.layout import boundary_samples, scene_layout
 from wc.model.rollout import rollout
 from wc.model.worldcontact import WorldContact
 from wc.train.checkpoint import load_model, save_weights
 from wc.train.config import Schedule, TrainConfig
-from wc.train.data import LayoutBatchSampler, episode_phases, read_phase_window, split_blocks, windows_of
+from wc.train.data import LayoutBatchSampler, data_scales, episode_phases, overall, read_phase_window, split_blocks, windows_of
 from wc.train.events import event_frames
 from wc.train.evaluation import segment_loss
 from wc.train.schedule import learning_rate
@@ -151,6 +151,47 @@ def test_checkpoint_reloads_to_identical_predictions(store_path, params, tmp_pat
         want = rollout(model, layout, a["x"][:, 0], a["v"][:, 0], a["poses"], 0.04)
         got = rollout(loaded, layout, a["x"][:, 0], a["v"][:, 0], a["poses"], 0.04)
     assert torch.equal(want[0], got[0]) and torch.equal(want[1], got[1])
+
+
+def test_per_axis_scales_scale_each_axis_and_survive_a_checkpoint(store_path, params, tmp_path):
+    cfg, layout, a = _batch(store_path, params)
+    torch.manual_seed(0)
+    axes = WorldContact(cfg, velocity_m_s=(0.3, 0.3, 0.6), delta_x_m=(0.005, 0.005, 0.02), delta_v_m_s=0.1).eval()
+    torch.nn.init.normal_(axes.head.mlp[-1].weight, std=0.1)
+    one = WorldContact(cfg, velocity_m_s=(0.3, 0.3, 0.6), delta_x_m=0.005, delta_v_m_s=0.1).eval()
+    one.load_state_dict(axes.state_dict() | {"scales": one.scales})
+    args = (a["x"][:, 0], a["v"][:, 0], layout, *boundary_samples(layout, a["poses"][:, 0], a["poses"][:, 1], 0.04))
+    with torch.no_grad():
+        dx_axes, _ = axes(*args)
+        dx_one, _ = one(*args)
+    torch.testing.assert_close(dx_axes[..., :2], dx_one[..., :2])  # same network, x and y scaled alike ...
+    torch.testing.assert_close(dx_axes[..., 2], 4 * dx_one[..., 2])  # ... z by its own scale, 4x here
+    save_weights(axes, tmp_path / "a.safetensors", {})
+    assert json.loads((tmp_path / "a.json").read_text())["scales"]["delta_x_m"] == pytest.approx([0.005, 0.005, 0.02])
+    loaded, _ = load_model(tmp_path / "a.safetensors")
+    assert torch.equal(loaded.scales, axes.scales)
+    with pytest.raises(ValueError, match="delta_x_m must be one positive value or three"):
+        WorldContact(cfg, velocity_m_s=0.3, delta_x_m=(0.1, 0.2), delta_v_m_s=0.1)
+
+
+def test_a_checkpoint_saved_with_one_scale_per_quantity_still_loads(store_path, params, tmp_path):
+    cfg, _, _ = _batch(store_path, params)
+    model = WorldContact(cfg, velocity_m_s=0.3, delta_x_m=0.005, delta_v_m_s=0.1)
+    save_weights(model, tmp_path / "m.safetensors", {})
+    from safetensors.torch import load_file, save_file
+    state = load_file(str(tmp_path / "m.safetensors"))
+    save_file(state | {"scales": torch.tensor([0.3, 0.005, 0.1])}, str(tmp_path / "m.safetensors"))  # the old (3,)
+    loaded, _ = load_model(tmp_path / "m.safetensors")
+    torch.testing.assert_close(loaded.scales, model.scales)
+
+
+def test_per_axis_data_scales_agree_with_the_single_scale(store_path):
+    store = TrajectoryStore(store_path)
+    phases = [p for e in store.episode_ids for p in episode_phases(store, e)]
+    single, axes = data_scales(store, phases, 8), data_scales(store, phases, 8, per_axis=True)
+    for name in ("velocity_m_s", "delta_x_m", "delta_v_m_s"):
+        assert len(getattr(axes, name)) == 3
+        assert overall(getattr(axes, name)) == pytest.approx(getattr(single, name), rel=1e-6)
 
 
 def test_corrupt_or_missing_checkpoint(tmp_path):

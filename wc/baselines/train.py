@@ -24,7 +24,7 @@ from wc.baselines.config import BaselinesConfig
 from wc.data.store import TrajectoryStore
 from wc.model.layout import SceneLayout, scene_layout
 from wc.train.config import TrainConfig
-from wc.train.data import LayoutBatchSampler, LayoutKey, Phase, Window, WindowDataset, read_phase_window
+from wc.train.data import LayoutBatchSampler, LayoutKey, Phase, Window, WindowDataset, overall, read_phase_window
 from wc.train.evaluation import load_window, phase_rollout_errors
 from wc.train.loop import prepare_data
 
@@ -67,7 +67,7 @@ def train_baseline(name: str, store_path: str | Path, out_dir: str | Path, cfg: 
     window = model.history + model.sequence
     data = prepare_data(store, dataclasses.replace(train_cfg, window=window, val_windows=cfg.val_windows, seed=cfg.seed))
     train_phases = list(dict.fromkeys(w.phase for w in data.train_windows))
-    model.set_statistics(*position_statistics(store, train_phases), data.scales.delta_x_m)
+    model.set_statistics(*position_statistics(store, train_phases), overall(data.scales.delta_x_m))
     model.to(device).train()
     cache: dict[LayoutKey, SceneLayout] = {}
 

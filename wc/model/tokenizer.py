@@ -9,6 +9,8 @@ before they become features). `LinearTokenizer` is the paper's "no contact token
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import torch
 from torch import Tensor, nn
 
@@ -97,6 +99,16 @@ def _scene_ids(b: int, per_scene: int, device: torch.device) -> Tensor:
     return torch.arange(b, device=device).repeat_interleave(per_scene)
 
 
+def axis_scale(value: float | Sequence[float], name: str) -> Tensor:
+    """(3,) float32 per-axis scale from one value (every axis) or three; each must be positive."""
+    scale = torch.as_tensor(value, dtype=torch.float32).reshape(-1)
+    if scale.numel() == 1:
+        scale = scale.expand(3).clone()
+    if scale.numel() != 3 or not bool((scale > 0).all()) or not bool(torch.isfinite(scale).all()):
+        raise ValueError(f"{name} must be one positive value or three (x, y, z), got {value}")
+    return scale
+
+
 class ContactTokenizer(nn.Module):
     """h_i = [g^S, g^T, g^E, g^C, direct] (B, N, 192) from the object state and the prescribed samples.
 
@@ -110,7 +122,7 @@ class ContactTokenizer(nn.Module):
         topology_radius: float,
         controllable_radius: float,
         environment_radius: float,
-        velocity_scale: float,
+        velocity_scale: float | Sequence[float],
         kernel_size: int = 4,
         spatial_channels: int = 32,
         topology_channels: int = 32,
@@ -118,15 +130,13 @@ class ContactTokenizer(nn.Module):
         direct_channels: int = 64,
     ) -> None:
         super().__init__()
-        if not velocity_scale > 0.0:
-            raise ValueError(f"velocity_scale must be positive, got {velocity_scale}")
+        self.register_buffer("velocity_scale", axis_scale(velocity_scale, "velocity_scale"), persistent=False)
         if boundary_channels % 2 != 0:
             raise ValueError(f"boundary_channels must be even (split C/E), got {boundary_channels}")
         self.spatial_radius = float(spatial_radius)
         self.topology_radius = float(topology_radius)
         self.controllable_radius = float(controllable_radius)
         self.environment_radius = float(environment_radius)
-        self.velocity_scale = float(velocity_scale)
         self.out_dim = spatial_channels + topology_channels + boundary_channels + direct_channels
         f = VERTEX_FEATURES
         self.spatial = ContinuousConv(f, spatial_channels, spatial_radius, kernel_size)
@@ -178,7 +188,7 @@ class ContactTokenizer(nn.Module):
         scene = _scene_ids(b, n, device)
         c = attributes.to(x.dtype).expand(b, n, 3).reshape(b * n, 3)
         ones = xf.new_ones(b * n, 1)
-        u = torch.cat((ones, v.reshape(b * n, 3) / vs, c), dim=1)  # (B*N, 7) = [1, v_j, c_j]
+        u = torch.cat((ones, (v.reshape(b * n, 3) / vs).to(xf.dtype), c), dim=1)  # (B*N, 7) = [1, v_j, c_j]
         frame = self.offset_transform
         env_xf, env_u = self._samples(env_x, env_v, env_attr, xf.dtype)
         ctrl_xf, ctrl_u = self._samples(ctrl_x, ctrl_v, ctrl_attr, xf.dtype)
@@ -215,7 +225,8 @@ class ContactTokenizer(nn.Module):
     def _samples(self, sx: Tensor, sv: Tensor, sattr: Tensor, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
         """Flattened sample positions (B*M, 3) and features u_j = [v_j / vs, attr_j] (B*M, 7) for g^C or g^E."""
         b, m, _ = sx.shape
-        u = torch.cat((sv.reshape(b * m, 3).to(dtype) / self.velocity_scale, sattr.reshape(b * m, 4).to(dtype)), dim=1)
+        u = torch.cat(((sv.reshape(b * m, 3).to(dtype) / self.velocity_scale).to(dtype), sattr.reshape(b * m, 4).to(dtype)),
+                      dim=1)
         return sx.reshape(b * m, 3).to(dtype), u
 
 
@@ -226,11 +237,9 @@ class LinearTokenizer(nn.Module):
     Same forward signature as ContactTokenizer; object_index and the topology pairs are ignored.
     """
 
-    def __init__(self, velocity_scale: float, out_dim: int = TOKEN_DIM) -> None:
+    def __init__(self, velocity_scale: float | Sequence[float], out_dim: int = TOKEN_DIM) -> None:
         super().__init__()
-        if not velocity_scale > 0.0:
-            raise ValueError(f"velocity_scale must be positive, got {velocity_scale}")
-        self.velocity_scale = float(velocity_scale)
+        self.register_buffer("velocity_scale", axis_scale(velocity_scale, "velocity_scale"), persistent=False)
         self.out_dim = out_dim
         self.proj = nn.Linear(9 + 2 * (3 + 3 + SAMPLE_ATTRIBUTES), out_dim)
 

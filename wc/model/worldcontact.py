@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import torch
 from torch import nn
 
@@ -15,7 +17,7 @@ from wc.model.neighbor_cache import NeighborCache
 from wc.model.padded_neighbors import NeighborCapacity
 from wc.model.attention import RoPE3D
 from wc.model.projection import TopologyProjection
-from wc.model.tokenizer import ContactTokenizer, LinearTokenizer, topology_pairs
+from wc.model.tokenizer import ContactTokenizer, LinearTokenizer, axis_scale, topology_pairs
 
 WIDTH = 192  # spatial 32 + topology 32 + boundary 64 + direct 64 (Appendix)
 HEAD_DIM = WIDTH // 8
@@ -24,12 +26,13 @@ HEAD_DIM = WIDTH // 8
 class WorldContact(nn.Module):
     """Tokenizer → hierarchical encoder → global-token decoder → head.
 
-    `scales` (velocity_m_s, delta_x_m, delta_v_m_s) come from the training data: velocity features
-    are divided by the first, and the head predicts Δx, Δv in units of the other two, so an
-    untrained network starts near zero change whatever the scene's units of motion.
+    `scales` (velocity_m_s, delta_x_m, delta_v_m_s) come from the training data, each one value or one per axis
+    (x, y, z): velocity features are divided by the first, and the head predicts Δx, Δv in units of the other
+    two, so an untrained network starts near zero change whatever the scene's units of motion.
     """
 
-    def __init__(self, config: ModelConfig, velocity_m_s: float, delta_x_m: float, delta_v_m_s: float) -> None:
+    def __init__(self, config: ModelConfig, velocity_m_s: float | Sequence[float], delta_x_m: float | Sequence[float],
+                 delta_v_m_s: float | Sequence[float]) -> None:
         super().__init__()
         self.config = config
         if config.tokenizer == "contact":
@@ -44,7 +47,9 @@ class WorldContact(nn.Module):
         self.decoder = GlobalTokenDecoder(WIDTH, config.heads, config.decoder_layers, config.decoder_ffn_hidden,
                                           config.dropout, rope)
         self.head = StateHead(WIDTH)
-        self.register_buffer("scales", torch.tensor([velocity_m_s, delta_x_m, delta_v_m_s], dtype=torch.float32))
+        self.register_buffer("scales", torch.stack([axis_scale(velocity_m_s, "velocity_m_s"),  # (3 scales, 3 axes)
+                                                    axis_scale(delta_x_m, "delta_x_m"),
+                                                    axis_scale(delta_v_m_s, "delta_v_m_s")]))
 
     def parameter_counts(self) -> dict[str, int]:
         """Trainable parameters per module (the Appendix: 57,993 / 782,784 / 1,116,480 / 42,502)."""

@@ -24,7 +24,7 @@ def save_weights(model: WorldContact, path: Path, meta: dict[str, Any]) -> None:
     """Write `path` (.safetensors) and its sibling `<stem>.json` (model config, scales, `meta`)."""
     state = {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
     _atomic(path, lambda p: save_file(state, str(p)))
-    v, dx, dv = (float(s) for s in model.scales)
+    v, dx, dv = (float(row[0]) if bool((row == row[0]).all()) else [float(a) for a in row] for row in model.scales)
     config = {"model": model.config.to_dict(), "scales": {"velocity_m_s": v, "delta_x_m": dx, "delta_v_m_s": dv},
               **meta}
     _atomic(path.with_suffix(".json"), lambda p: p.write_text(json.dumps(config, indent=2)))
@@ -46,6 +46,8 @@ def load_model(path: str | os.PathLike[str], device: str | torch.device = "cpu")
         state = load_file(str(path))
     except Exception as err:  # safetensors raises its own error types for corrupt files
         raise ValueError(f"{path}: unreadable safetensors file: {err}") from err
+    if state.get("scales") is not None and state["scales"].shape == (3,):  # saved before per-axis scales
+        state["scales"] = state["scales"][:, None].expand(3, 3).contiguous()
     missing, unexpected = model.load_state_dict(state, strict=False)
     if missing or unexpected:
         raise ValueError(f"{path}: weights do not match the config (missing {missing[:3]}, unexpected {unexpected[:3]})")

@@ -55,6 +55,7 @@ class TrainConfig:
     holdout_fraction: float = 0.25  # with no val split: this share of each train episode validates ...
     holdout_block_frames: int = 12  # ... as interleaved blocks of this many frames (wc.train.data.split_blocks)
     stats_episodes: int = 32  # episodes read to set the input/output scales
+    per_axis_scales: bool = False  # one scale per axis (x, y, z) for v, Δx, Δv (gravity and lifts move along z)
     checkpoint_every_steps: int = 100
     autocast_bf16: bool = False  # CUDA only: bf16 autocast of the network, fp32 state accumulation
     tf32: bool = False  # CUDA only: TF32 matrix products outside autocast

@@ -171,30 +171,44 @@ class LayoutBatchSampler(torch.utils.data.Sampler[list[int]]):
                 yield group[self.rng.choice(len(group), size=self.batch_size, p=self.within[g])].tolist()
 
 
+Scale = float | tuple[float, float, float]  # one value, or one per axis (x, y, z)
+
+
 @dataclass(frozen=True)
 class Scales:
     """Data scales: velocity features are divided by `velocity_m_s`; the head's outputs are in units of the deltas."""
 
-    velocity_m_s: float
-    delta_x_m: float
-    delta_v_m_s: float
+    velocity_m_s: Scale
+    delta_x_m: Scale
+    delta_v_m_s: Scale
 
 
-def data_scales(store: TrajectoryStore, phases: list[Phase], max_episodes: int) -> Scales:
-    """RMS of v, of per-frame Δx and of per-frame Δv over (up to `max_episodes`) training phases."""
+def overall(scale: Scale) -> float:
+    """One value of a (possibly per-axis) scale: the RMS over its axes."""
+    return float(np.sqrt(np.mean(np.square(scale))))
+
+
+def data_scales(store: TrajectoryStore, phases: list[Phase], max_episodes: int, per_axis: bool = False) -> Scales:
+    """RMS of v, of per-frame Δx and of per-frame Δv over (up to `max_episodes`) training phases; per axis (x, y, z)
+    when `per_axis`, else one RMS over the three (per component)."""
     picked = phases[:: max(1, len(phases) // max_episodes)][:max_episodes]
-    v2 = dx2 = dv2 = 0.0
+    v2, dx2, dv2 = np.zeros(3), np.zeros(3), np.zeros(3)
     count = moves = 0
     for p in picked:
         a = read_phase_window(store, p, p.start, p.stop - p.start)
         x, v = a["x"].astype(np.float64), a["v"].astype(np.float64)
-        v2 += float((v ** 2).sum())
-        count += v.size
-        dx2 += float((np.diff(x, axis=0) ** 2).sum())
-        dv2 += float((np.diff(v, axis=0) ** 2).sum())
-        moves += v[1:].size
+        v2 += (v ** 2).reshape(-1, 3).sum(0)
+        count += v.size // 3
+        dx2 += (np.diff(x, axis=0) ** 2).reshape(-1, 3).sum(0)
+        dv2 += (np.diff(v, axis=0) ** 2).reshape(-1, 3).sum(0)
+        moves += v[1:].size // 3
     if count == 0 or moves == 0:
         raise ValueError(f"{store.path}: no frames to measure data scales from")
-    floor = 1e-6  # a static dataset still gets finite scales
-    return Scales(velocity_m_s=max(np.sqrt(v2 / count), floor), delta_x_m=max(np.sqrt(dx2 / moves), floor),
-                  delta_v_m_s=max(np.sqrt(dv2 / moves), floor))
+    floor = 1e-6  # a static dataset (or axis) still gets finite scales
+
+    def rms(sum_sq: np.ndarray, n: int) -> Scale:
+        if per_axis:
+            return tuple(float(a) for a in np.maximum(np.sqrt(sum_sq / n), floor))
+        return max(float(np.sqrt(sum_sq.sum() / (3 * n))), floor)
+
+    return Scales(velocity_m_s=rms(v2, count), delta_x_m=rms(dx2, moves), delta_v_m_s=rms(dv2, moves))

@@ -82,7 +82,8 @@ def prepare_data(store: TrajectoryStore, cfg: TrainConfig) -> TrainData:
     weights, share = window_weights(store, train_phases, train_windows, cfg.window, cfg.event_oversample,
                                     cfg.event_margin_frames, cfg.event_accel_m_s2)
     return TrainData(train_windows, train_phases, [val_all[i] for i in sorted(pick)], val_phases,
-                     data_scales(store, train_phases, cfg.stats_episodes), validation, weights, share)
+                     data_scales(store, train_phases, cfg.stats_episodes, cfg.per_axis_scales), validation, weights,
+                     share)
 
 
 class SegmentRollout(nn.Module):
