@@ -7,8 +7,10 @@ settings and seed -> models/policy/{source,expanded}/ and reports/finetune.json.
 
 `--policy FILE` takes the `policy` section from FILE instead (`--set policy.*` then applies to it).
 
-The work is `wc.policy.finetune.finetune` (importable, used by the tests); params `policy`
-(wc.policy.policy_config) say which policy, which datasets and the recipe.
+The work is `wc.policy.finetune.finetune` (importable, used by the tests), which trains with lerobot's own
+`lerobot-train` code in this process (one GPU or the CPU; for several GPUs run `lerobot-train` under
+`accelerate launch` per dataset); params `policy` (wc.policy.policy_config) say which policy, which datasets
+and the recipe.
 """
 
 from __future__ import annotations
@@ -28,7 +30,7 @@ SECTIONS = ["policy"]
 
 
 def run(params: dict[str, Any], data_root: str | Path = "data/lerobot", out_root: str | Path = "models/policy",
-        report: str | Path = "reports/finetune.json", progress: bool = True) -> dict[str, Any]:
+        report: str | Path = "reports/finetune.json") -> dict[str, Any]:
     """Train one policy per dataset in `policy.datasets`, write them under `out_root` and the report."""
     cfg = load_section(params, "policy", PolicyConfig)
     roots = {name: Path(data_root) / name for name in cfg.datasets}
@@ -37,7 +39,7 @@ def run(params: dict[str, Any], data_root: str | Path = "data/lerobot", out_root
         raise FileNotFoundError(f"finetune: no LeRobot dataset at {', '.join(missing)} (run the dataset stage first)")
     start = time.perf_counter()
     digest = params_hash(params, SECTIONS)
-    results = {name: finetune(root, Path(out_root) / name, cfg, meta={"params_hash": digest}, progress=progress)
+    results = {name: finetune(root, Path(out_root) / name, cfg, meta={"params_hash": digest})
                for name, root in roots.items()}
     equal = expanded_equals_source({name: r["episodes"] for name, r in results.items()})
     if equal:

@@ -1,13 +1,16 @@
-"""Stage `finetune` on a tiny LeRobot dataset built here: ACT trains, saves and reloads; both datasets
-train identically; the pi0.5 path runs one real step from a tiny local checkpoint and tokenizer;
-missing pretrained files fail loudly."""
+"""Stage `finetune` on a tiny LeRobot dataset built here, training through lerobot's own `train()`: ACT trains,
+saves and reloads; both datasets train identically; the pi0.5 path runs one real step from a tiny local
+checkpoint and tokenizer; missing pretrained files fail loudly; the stock `lerobot-train` CLI runs offline."""
 
 from __future__ import annotations
 
 import copy
 import dataclasses
 import json
+import os
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -19,11 +22,11 @@ from lerobot.datasets import LeRobotDataset
 from stages.finetune import run, stage_params
 from wc.config import ParamsError, load_section
 from wc.policy.comparison import FLAG
-from wc.policy.finetune import (batches, build_trainer, dataset_metadata, finetune, load_policy, policy_config,
-                                save_policy, train_step)
+from wc.policy.finetune import dataset_metadata, finetune, load_policy, policy_config
 from wc.policy.policy_config import PolicyConfig
 from wc.policy.pretrained import PretrainedFilesError
 from wc.policy.processors import make_pi05_processors
+from wc.policy.stock_trainer import StepRecorder
 
 TASK = "right grasp and lift"
 H = W = 32
@@ -73,33 +76,55 @@ def _actions(policy: Any, preprocessor: Any, postprocessor: Any, batch: dict[str
         return postprocessor(policy.predict_action_chunk(preprocessor(copy.copy(batch))))
 
 
-def test_act_loss_decreases_on_a_fixed_batch(data_root: Path) -> None:
-    trainer = build_trainer(data_root / "source", _cfg(ACT))
-    batch = trainer.preprocessor(next(batches(trainer.dataset, trainer.meta, trainer.cfg)))
-    losses = [train_step(trainer.policy, batch, trainer.optimizer, trainer.scheduler, 10.0) for _ in range(6)]
-    assert all(np.isfinite(losses))
-    assert np.mean(losses[-2:]) < 0.8 * np.mean(losses[:2])
+def _batch(root: Path, size: int) -> dict[str, Any]:
+    """The first `size` frames of the dataset at `root` as one batch (observations for inference)."""
+    dataset = LeRobotDataset("test/batch", root=root, delta_timestamps={"action": [0.0]})
+    return next(iter(torch.utils.data.DataLoader(dataset, batch_size=size)))
 
 
-def test_act_saved_policy_reloads_with_identical_actions(data_root: Path, tmp_path: Path) -> None:
-    trainer = build_trainer(data_root / "source", _cfg(ACT))
-    data = batches(trainer.dataset, trainer.meta, trainer.cfg)
-    for _ in range(2):
-        train_step(trainer.policy, trainer.preprocessor(next(data)), trainer.optimizer, trainer.scheduler, 10.0)
-    save_policy(trainer, tmp_path / "policy", {"steps": 2})
-    assert {"config.json", "model.safetensors", "policy_preprocessor.json", "policy_postprocessor.json",
-            "train_summary.json"} <= {p.name for p in (tmp_path / "policy").iterdir()}
-    batch = next(data)
-    expected = _actions(trainer.policy, trainer.preprocessor, trainer.postprocessor, batch)
-    actions = _actions(*load_policy(tmp_path / "policy"), batch)
-    assert actions.shape == (trainer.cfg.batch_size, trainer.cfg.chunk_size, 7)
-    torch.testing.assert_close(actions, expected, rtol=0, atol=1e-6)
-    assert not any(p.name.startswith(".policy.") for p in tmp_path.iterdir())  # no temporary left behind
+def _capture_policy(monkeypatch: pytest.MonkeyPatch) -> dict[str, Any]:
+    """Keep the policy lerobot's train() hands to our accelerator: the very module it trains."""
+    seen: dict[str, Any] = {}
+    prepare = StepRecorder.prepare
+
+    def capture(self: StepRecorder, *args: Any, **kwargs: Any) -> Any:
+        seen["policy"] = args[0]
+        return prepare(self, *args, **kwargs)
+
+    monkeypatch.setattr(StepRecorder, "prepare", capture)
+    return seen
+
+
+def test_act_trains_with_lerobot_train_and_reloads_identically(data_root: Path, tmp_path: Path,
+                                                               monkeypatch: pytest.MonkeyPatch) -> None:
+    seen = _capture_policy(monkeypatch)
+    cfg = _cfg(ACT, steps=7, log_every_steps=2)
+    summary = finetune(data_root / "source", tmp_path / "policy", cfg)
+    # losses of every step from lerobot's own update, averaged per log window (the last one shorter)
+    assert [h["step"] for h in summary["history"]] == [2, 4, 6, 7]
+    assert summary["final_loss"] < 0.8 * summary["first_loss"] and np.isfinite(summary["final_loss"])
+    lrs = [h["lr"] for h in summary["history"]]
+    assert lrs == sorted(lrs, reverse=True) and lrs[0] <= cfg.lr  # cosine decay from the params, not ACT's preset
+    assert summary["trainer"] == "lerobot-train 0.6.1" and summary["parameters"] > 0
+    assert summary["s_per_step_median"] > 0 and summary["train_s"] >= summary["s_per_step_median"]
+    saved = {p.name for p in (tmp_path / "policy").iterdir()}
+    assert {"config.json", "model.safetensors", "train_config.json", "policy_preprocessor.json",
+            "policy_postprocessor.json", "train_summary.json"} <= saved
+    assert [p.name for p in tmp_path.iterdir()] == ["policy"]  # no temporary or lerobot run directory left
+    train_cfg = json.loads((tmp_path / "policy" / "train_config.json").read_text())
+    assert (train_cfg["steps"], train_cfg["seed"], train_cfg["use_policy_training_preset"]) == (7, 0, False)
+    assert train_cfg["scheduler"]["type"] == "cosine_decay_with_warmup" and train_cfg["wandb"]["enable"] is False
+    batch = _batch(data_root / "source", cfg.batch_size)
+    policy, preprocessor, postprocessor = load_policy(tmp_path / "policy")
+    actions = _actions(policy, preprocessor, postprocessor, batch)
+    assert actions.shape == (cfg.batch_size, cfg.chunk_size, 7)
+    expected = _actions(seen["policy"], preprocessor, postprocessor, batch)  # the policy as training left it
+    torch.testing.assert_close(actions, expected, rtol=0, atol=0)
 
 
 def test_stage_trains_both_datasets_with_identical_settings(data_root: Path, tmp_path: Path) -> None:
     params = {"policy": copy.deepcopy(ACT), "_source": "test"}
-    report = run(params, data_root, tmp_path / "models", tmp_path / "finetune.json", progress=False)
+    report = run(params, data_root, tmp_path / "models", tmp_path / "finetune.json")
     saved = json.loads((tmp_path / "finetune.json").read_text())
     assert saved["params_hash"] == report["params_hash"] and saved["steps"] == ACT["steps"]
     src, exp = saved["datasets"]["source"], saved["datasets"]["expanded"]
@@ -117,19 +142,50 @@ def test_clear_errors(data_root: Path, tmp_path: Path) -> None:
     empty = tmp_path / "checkpoint"
     empty.mkdir()
     with pytest.raises(PretrainedFilesError, match="model.safetensors"):
-        build_trainer(data_root / "source", _cfg(ACT, pretrained_path=str(empty)))
+        finetune(data_root / "source", tmp_path / "policy", _cfg(ACT, pretrained_path=str(empty)))
     with pytest.raises(PretrainedFilesError, match="tokenizer_path"):
-        build_trainer(data_root / "source", _cfg(PI05, tokenizer_path=str(tmp_path / "no_tokenizer")))
+        finetune(data_root / "source", tmp_path / "policy", _cfg(PI05, tokenizer_path=str(tmp_path / "no_tokenizer")))
     with pytest.raises(ParamsError, match="tokenizer_path"):
         _cfg(PI05)
     with pytest.raises(ValueError, match="policy.config.bogus"):
         policy_config(_cfg(ACT, config={"bogus": 1}), dataset_metadata(data_root / "source", _cfg(ACT)))
+    with pytest.raises(ValueError, match="optimizer_lr_backbone .* must equal policy.lr"):
+        policy_config(_cfg(ACT, config=dict(ACT["config"], optimizer_lr_backbone=1e-5)),
+                      dataset_metadata(data_root / "source", _cfg(ACT)))
     with pytest.raises(ParamsError, match="policy.config.device"):
         _cfg(ACT, config={"device": "cuda"})
     with pytest.raises(ValueError, match="expected only policy.task"):
         dataset_metadata(data_root / "source", _cfg(ACT, task="left grasp"))
+    (tmp_path / "notes").mkdir()
+    (tmp_path / "notes" / "keep.txt").write_text("mine")
+    with pytest.raises(FileExistsError, match="not a saved policy"):  # refused before training
+        finetune(data_root / "source", tmp_path / "notes", _cfg(ACT))
     with pytest.raises(FileNotFoundError, match="run the dataset stage"):
         run({"policy": dict(ACT, datasets=["nowhere"]), "_source": "test"}, data_root, tmp_path, tmp_path / "r.json")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["checkpoint", "notes"]  # nothing half-written
+
+
+def test_stock_lerobot_train_cli_runs_offline(data_root: Path, tmp_path: Path) -> None:
+    """The documented command: lerobot's own CLI on our dataset, 2 steps, no network; load_policy reads its output."""
+    cli = Path(sys.executable).with_name("lerobot-train")
+    args = [str(cli), "--dataset.repo_id=worldcontact/source", f"--dataset.root={data_root / 'source'}",
+            "--dataset.video_backend=pyav", "--dataset.use_imagenet_stats=false", "--policy.type=act",
+            "--policy.device=cpu", "--policy.push_to_hub=false", "--policy.pretrained_backbone_weights=null",
+            "--policy.chunk_size=4", "--policy.n_action_steps=4", "--policy.dim_model=32", "--policy.n_heads=2",
+            "--policy.dim_feedforward=64", "--policy.n_encoder_layers=1", "--policy.n_vae_encoder_layers=1",
+            "--use_policy_training_preset=false", "--optimizer.type=adamw", "--optimizer.lr=1e-4",
+            "--optimizer.weight_decay=1e-4", "--scheduler.type=cosine_decay_with_warmup",
+            "--scheduler.num_warmup_steps=0", "--scheduler.num_decay_steps=100", "--scheduler.peak_lr=1e-4",
+            "--scheduler.decay_lr=1e-5", "--steps=2", "--batch_size=4", "--seed=0", "--num_workers=0",
+            "--log_freq=1", "--wandb.enable=false", f"--output_dir={tmp_path / 'run'}"]
+    env = dict(os.environ, HF_HUB_OFFLINE="1", HF_DATASETS_OFFLINE="1", WANDB_MODE="disabled")
+    result = subprocess.run(args, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stderr[-3000:]
+    model = tmp_path / "run" / "checkpoints" / "last" / "pretrained_model"
+    assert json.loads((model / "train_config.json").read_text())["steps"] == 2
+    policy, preprocessor, postprocessor = load_policy(model)
+    actions = _actions(policy, preprocessor, postprocessor, _batch(data_root / "source", 2))
+    assert actions.shape == (2, 4, 7) and torch.isfinite(actions).all()
 
 
 def test_policy_fragment_replaces_the_section(tmp_path: Path) -> None:
@@ -188,24 +244,26 @@ def _checkpoint(path: Path, cfg: PolicyConfig, root: Path) -> Path:
 
 def test_pi05_one_training_step_from_a_local_checkpoint(data_root: Path, tiny_pi05: Path, tmp_path: Path) -> None:
     cfg = _cfg(PI05, tokenizer_path=str(tiny_pi05))
+    with pytest.raises(PretrainedFilesError, match="pretrained_path is not set"):
+        finetune(data_root / "source", tmp_path / "policy", cfg)
     checkpoint = _checkpoint(tmp_path / "pi05_base", cfg, data_root / "source")
     cfg = dataclasses.replace(cfg, pretrained_path=str(checkpoint))
-    summary = finetune(data_root / "source", tmp_path / "policy", cfg, progress=False)
+    summary = finetune(data_root / "source", tmp_path / "policy", cfg)
     assert summary["steps"] == 1 and np.isfinite(summary["final_loss"])
     assert (tmp_path / "policy" / "tokenizer" / "tokenizer.json").is_file()
     saved = json.loads((tmp_path / "policy" / "config.json").read_text())
     assert (saved["type"], saved["chunk_size"], saved["optimizer_betas"]) == ("pi05", 4, [0.9, 0.95])
     assert saved["scheduler_warmup_steps"] == 1000 and saved["normalization_mapping"]["STATE"] == "QUANTILES"
+    assert saved["pretrained_path"] == str(checkpoint)  # where training started, not lerobot's temporary copy
     policy, preprocessor, postprocessor = load_policy(tmp_path / "policy")
-    batch = next(batches(LeRobotDataset("t", root=data_root / "source", delta_timestamps={"action": [0.0]}),
-                         dataset_metadata(data_root / "source", cfg), cfg))
-    actions = _actions(policy, preprocessor, postprocessor, batch)
+    actions = _actions(policy, preprocessor, postprocessor, _batch(data_root / "source", cfg.batch_size))
     assert actions.shape == (cfg.batch_size, cfg.chunk_size, 7) and torch.isfinite(actions).all()
     # a checkpoint whose tensors do not fit the config: lerobot would silently keep random weights
     mismatched = _cfg(PI05, tokenizer_path=str(tiny_pi05), config=dict(PI05["config"], max_action_dim=16))
     _checkpoint(tmp_path / "other", mismatched, data_root / "source")
     with pytest.raises(PretrainedFilesError, match="not loaded"):
-        build_trainer(data_root / "source", dataclasses.replace(cfg, pretrained_path=str(tmp_path / "other")))
+        finetune(data_root / "source", tmp_path / "policy2", dataclasses.replace(cfg, pretrained_path=str(tmp_path / "other")))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["other", "pi05_base", "policy", "tokenizer"]
 
 
 def test_pi05_processors_match_lerobots_factory(data_root: Path, tiny_pi05: Path,

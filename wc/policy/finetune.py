@@ -1,12 +1,14 @@
-"""Fine-tune one lerobot policy on one local LeRobot dataset and save it the lerobot way.
+"""Fine-tune one lerobot policy on one local LeRobot dataset with lerobot's own trainer, and save it.
 
-lerobot does the work: the policy config class and `make_policy` (loading `pretrained_path`),
-the processors (wc.policy.processors), `LeRobotDataset` with the action chunk from
-`resolve_delta_timestamps`, `EpisodeAwareSampler`, `AdamWConfig` and
-`CosineDecayWithWarmupSchedulerConfig`. The loop around `policy.forward(batch)` is lerobot-train's
-`update_policy` without accelerate. The output directory holds `config.json`, `model.safetensors`,
-the two processor pipelines (plus the tokenizer for pi0.5) and `train_summary.json`, so
-`load_policy` (or lerobot's own loaders) reads it back.
+Both policy types (ACT, the CPU default, and pi0.5) train through lerobot 0.6.1's
+`lerobot.scripts.lerobot_train.train` (what `lerobot-train` runs; wc.policy.stock_trainer): dataset
+loading, sampling, the update loop, accelerate (mixed precision), logging and checkpoints are lerobot's.
+This module checks the local files first, builds lerobot's policy config from params `policy`
+(`policy_config`), and afterwards moves lerobot's final `checkpoints/last/pretrained_model` (config.json,
+model.safetensors, train_config.json and the two processor pipelines) into `out` atomically, adding the
+tokenizer (pi0.5) and `train_summary.json`; `load_policy` (or lerobot's own loaders) reads it back.
+pi0.5 starts from a local checkpoint whose processors read a local tokenizer (wc.policy.processors),
+which lerobot 0.6.1 alone would fetch from the Hub.
 """
 
 from __future__ import annotations
@@ -16,31 +18,28 @@ import json
 import os
 import secrets
 import shutil
+import sys
 import time
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import lerobot
 import numpy as np
-import torch
+from huggingface_hub.constants import CONFIG_NAME
 from lerobot.configs import FeatureType, NormalizationMode, PreTrainedConfig
-from lerobot.datasets import EpisodeAwareSampler, LeRobotDataset, LeRobotDatasetMetadata
-from lerobot.datasets.factory import resolve_delta_timestamps
-from lerobot.optim import AdamWConfig, CosineDecayWithWarmupSchedulerConfig
-from lerobot.policies import PreTrainedPolicy, make_policy
+from lerobot.datasets import LeRobotDatasetMetadata
+from lerobot.policies import PreTrainedPolicy
 from lerobot.policies.factory import get_policy_class
 from lerobot.processor import PolicyProcessorPipeline
-from lerobot.utils.constants import ACTION, OBS_IMAGES, OBS_STATE
+from lerobot.utils.constants import ACTION, CHECKPOINTS_DIR, OBS_IMAGES, OBS_STATE
 from lerobot.utils.feature_utils import dataset_to_policy_features
-from lerobot.utils.random_utils import set_seed
-from torch.optim import Optimizer
-from torch.optim.lr_scheduler import LRScheduler
-from tqdm import tqdm
 
 from wc.policy.policy_config import PolicyConfig
+from wc.policy.pretrained import PretrainedFilesError, check_weights_loaded, checkpoint_weights, tokenizer_dir
+from wc.policy.processors import load_processors
+from wc.policy.stock_trainer import (StepRecorder, last_checkpoint, make_accelerator, starting_checkpoint, train,
+                                    train_config)
 from wc.reports import replace_dir
-from wc.policy.pretrained import checkpoint_weights, check_weights_loaded, tokenizer_dir
-from wc.policy.processors import load_processors, make_processors
 
 SUMMARY_FILE = "train_summary.json"
 TOKENIZER_DIR = "tokenizer"
@@ -82,7 +81,11 @@ def policy_config(cfg: PolicyConfig, meta: LeRobotDatasetMetadata) -> PreTrained
     recipe = {"optimizer_lr": cfg.lr, "optimizer_betas": tuple(cfg.betas), "optimizer_eps": cfg.eps,
               "optimizer_weight_decay": cfg.weight_decay, "optimizer_grad_clip_norm": cfg.grad_clip_norm,
               "scheduler_warmup_steps": cfg.warmup_steps, "scheduler_decay_steps": cfg.decay_steps,
-              "scheduler_decay_lr": cfg.decay_lr}
+              "scheduler_decay_lr": cfg.decay_lr, "optimizer_lr_backbone": cfg.lr}
+    if cfg.config.get("optimizer_lr_backbone", cfg.lr) != cfg.lr:  # ACT: only its own preset has a backbone lr
+        raise ValueError(f"policy.config.optimizer_lr_backbone ({cfg.config['optimizer_lr_backbone']}) must equal "
+                         f"policy.lr ({cfg.lr}): lerobot-train with the params' optimiser trains every parameter "
+                         "at one learning rate")
     kwargs.update({k: v for k, v in recipe.items() if k in fields})  # recorded in config.json where it has a field
     kwargs.update(device=cfg.device, chunk_size=cfg.chunk_size, n_action_steps=cfg.n_action_steps, push_to_hub=False,
                   pretrained_path=Path(cfg.pretrained_path) if cfg.pretrained_path else None)
@@ -104,131 +107,93 @@ def _default(field: dataclasses.Field) -> Any:
     return field.default_factory() if field.default_factory is not dataclasses.MISSING else field.default
 
 
-def make_optimizer(cfg: PolicyConfig, policy: PreTrainedPolicy) -> tuple[Optimizer, LRScheduler]:
-    """AdamW over the policy's own parameter groups and lerobot's cosine decay with linear warm-up."""
-    optimizer = AdamWConfig(lr=cfg.lr, betas=tuple(cfg.betas), eps=cfg.eps, weight_decay=cfg.weight_decay,
-                            grad_clip_norm=cfg.grad_clip_norm).build(policy.get_optim_params())
-    schedule = CosineDecayWithWarmupSchedulerConfig(num_warmup_steps=cfg.warmup_steps, num_decay_steps=cfg.decay_steps,
-                                                    peak_lr=cfg.lr, decay_lr=cfg.decay_lr)
-    return optimizer, schedule.build(optimizer, cfg.steps)
+def finetune(root: str | Path, out: str | Path, cfg: PolicyConfig, meta: dict[str, Any] | None = None
+             ) -> dict[str, Any]:
+    """Train `cfg.steps` steps on the dataset at `root` with lerobot-train and save the policy at `out` (atomically).
 
-
-def train_step(policy: PreTrainedPolicy, batch: dict[str, Any], optimizer: Optimizer, scheduler: LRScheduler | None,
-               grad_clip_norm: float) -> float:
-    """One update on a preprocessed batch: forward, backward, clip, step; returns the loss."""
-    policy.train()
-    loss, _ = policy.forward(batch)
-    if not torch.isfinite(loss):
-        raise FloatingPointError(f"finetune: non-finite training loss {loss.item()}")
-    loss.backward()
-    if grad_clip_norm > 0:
-        torch.nn.utils.clip_grad_norm_(policy.parameters(), grad_clip_norm)
-    optimizer.step()
-    optimizer.zero_grad(set_to_none=True)
-    if scheduler is not None:
-        scheduler.step()
-    return loss.item()
-
-
-def batches(dataset: LeRobotDataset, meta: LeRobotDatasetMetadata, cfg: PolicyConfig) -> Iterator[dict[str, Any]]:
-    """Endless batches in a seeded, per-epoch shuffled order (a pure function of policy.seed)."""
-    sampler = EpisodeAwareSampler(meta.episodes["dataset_from_index"], meta.episodes["dataset_to_index"],
-                                  shuffle=True, seed=cfg.seed)
-    loader = torch.utils.data.DataLoader(dataset, batch_size=cfg.batch_size, sampler=sampler, drop_last=True,
-                                         num_workers=cfg.num_workers, persistent_workers=cfg.num_workers > 0,
-                                         pin_memory=cfg.device.startswith("cuda"))
-    while True:
-        yield from loader  # each pass draws the sampler's next epoch
-
-
-@dataclasses.dataclass
-class Trainer:
-    """A policy ready to train on one dataset, with its processors and optimiser."""
-
-    cfg: PolicyConfig
-    meta: LeRobotDatasetMetadata
-    dataset: LeRobotDataset
-    policy: PreTrainedPolicy
-    preprocessor: PolicyProcessorPipeline
-    postprocessor: PolicyProcessorPipeline
-    optimizer: Optimizer
-    scheduler: LRScheduler
-    tokenizer: Path | None
-
-
-def build_trainer(root: str | Path, cfg: PolicyConfig) -> Trainer:
-    """Check the local files, seed, and build the dataset, policy, processors and optimiser for `root`."""
-    meta = dataset_metadata(root, cfg)
-    weights = checkpoint_weights(cfg.pretrained_path) if cfg.pretrained_path else None
-    tokenizer = tokenizer_dir(cfg.tokenizer_path) if cfg.type == "pi05" else None
-    config = policy_config(cfg, meta)
-    set_seed(cfg.seed)
-    dataset = LeRobotDataset(meta.repo_id, root=root, delta_timestamps=resolve_delta_timestamps(config, meta),
-                             video_backend=cfg.video_backend)
-    policy = make_policy(config, ds_meta=meta)
-    if weights is not None:
-        check_weights_loaded(policy, weights)
-    preprocessor, postprocessor = make_processors(config, meta.stats, tokenizer)
-    optimizer, scheduler = make_optimizer(cfg, policy)
-    return Trainer(cfg, meta, dataset, policy, preprocessor, postprocessor, optimizer, scheduler, tokenizer)
-
-
-def finetune(root: str | Path, out: str | Path, cfg: PolicyConfig, meta: dict[str, Any] | None = None,
-             progress: bool = True) -> dict[str, Any]:
-    """Train `cfg.steps` steps on the dataset at `root` and save the policy at `out` (atomically).
-
-    Returns the summary also written to `<out>/train_summary.json`: losses every
-    `log_every_steps`, the final loss (mean of the last log window), timings and `meta`.
+    Returns the summary also written to `<out>/train_summary.json`: the mean loss of every `log_every_steps`
+    window (and of the last, shorter one), the final loss (the last window's), timings and `meta`. Should
+    training fail after lerobot saved a checkpoint, its run directory is kept (and named) for lerobot's resume.
     """
     start = time.perf_counter()
-    trainer = build_trainer(root, cfg)
-    history, window, step_s = [], [], []
-    data = batches(trainer.dataset, trainer.meta, cfg)
-    bar = tqdm(range(1, cfg.steps + 1), desc=f"finetune {Path(root).name}", disable=not progress, unit="step")
-    for step in bar:
-        t0 = time.perf_counter()
-        loss = train_step(trainer.policy, trainer.preprocessor(next(data)), trainer.optimizer, trainer.scheduler,
-                          cfg.grad_clip_norm)
-        step_s.append(time.perf_counter() - t0)
-        window.append(loss)
-        if step % cfg.log_every_steps == 0 or step == cfg.steps:
-            history.append({"step": step, "loss": float(np.mean(window)), "lr": trainer.scheduler.get_last_lr()[0]})
-            window = []
-            bar.set_postfix(loss=f"{history[-1]['loss']:.4g}")
-    summary = {"dataset": str(root), "policy_type": cfg.type, "steps": cfg.steps, "batch_size": cfg.batch_size,
-               "seed": cfg.seed, "episodes": trainer.meta.total_episodes, "frames": trainer.meta.total_frames,
-               "first_loss": history[0]["loss"], "final_loss": history[-1]["loss"], "history": history,
-               "s_per_step_median": float(np.median(step_s)), "train_s": float(np.sum(step_s)),
-               "parameters": sum(p.numel() for p in trainer.policy.parameters()),
-               "pretrained_path": cfg.pretrained_path, **(meta or {})}
-    save_policy(trainer, Path(out), summary)
+    root, out = Path(root), Path(out)
+    ds_meta = dataset_metadata(root, cfg)
+    weights = checkpoint_weights(cfg.pretrained_path) if cfg.pretrained_path else None
+    tokenizer = tokenizer_dir(cfg.tokenizer_path) if cfg.type == "pi05" else None
+    if tokenizer is not None and weights is None:
+        raise PretrainedFilesError("policy.pretrained_path is not set: lerobot-train reads pi05's processors (and "
+                                   "its local tokenizer) from the starting checkpoint; name a local one, e.g. "
+                                   "pretrained/pi05_base")
+    config = policy_config(cfg, ds_meta)
+    _check_replaceable(out)  # before training, not after
+    scratch = out.with_name(f".{out.name}.tmp-{os.getpid()}-{secrets.token_hex(4)}")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    scratch.mkdir()
+    run_dir, keep = scratch / "lerobot_train", False
+    try:
+        if weights is not None:
+            config.pretrained_path = starting_checkpoint(scratch / "start", config, ds_meta.stats, weights, tokenizer)
+        recorder = make_accelerator(config, weights)
+        train(train_config(root, cfg, config, run_dir), recorder)
+        summary = {"dataset": str(root), "policy_type": cfg.type, "trainer": f"lerobot-train {lerobot.__version__}",
+                   "steps": cfg.steps, "batch_size": cfg.batch_size, "seed": cfg.seed,
+                   "episodes": ds_meta.total_episodes, "frames": ds_meta.total_frames, **run_summary(recorder, cfg),
+                   "pretrained_path": cfg.pretrained_path, **(meta or {})}
+        save_policy(last_checkpoint(run_dir), out, summary, tokenizer, cfg.pretrained_path)
+    except BaseException:
+        keep = (run_dir / CHECKPOINTS_DIR).is_dir()
+        if keep:
+            print(f"finetune: training {root} failed; lerobot's run directory {run_dir} is kept (resume: lerobot-train "
+                  f"--config_path={run_dir}/{CHECKPOINTS_DIR}/last/pretrained_model/train_config.json --resume=true)",
+                  file=sys.stderr, flush=True)
+        raise
+    finally:
+        if not keep:
+            shutil.rmtree(scratch, ignore_errors=True)
     summary["wall_s"] = time.perf_counter() - start
     return summary
 
 
-def save_policy(trainer: Trainer, out: Path, summary: dict[str, Any]) -> None:
-    """Policy, processors, tokenizer (pi0.5) and summary into a temporary sibling, then renamed to `out`."""
-    tmp = out.with_name(f".{out.name}.tmp-{os.getpid()}-{secrets.token_hex(4)}")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    try:
-        trainer.policy.save_pretrained(tmp)
-        trainer.preprocessor.save_pretrained(tmp)
-        trainer.postprocessor.save_pretrained(tmp)
-        if trainer.tokenizer is not None:
-            shutil.copytree(trainer.tokenizer, tmp / TOKENIZER_DIR)
-        (tmp / SUMMARY_FILE).write_text(json.dumps(summary, indent=2, default=str) + "\n")
-        _replace_dir(tmp, out)
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
+def run_summary(recorder: StepRecorder, cfg: PolicyConfig) -> dict[str, Any]:
+    """What the recorder saw of lerobot's updates: `history` (mean loss of each `log_every_steps` window, the last
+    one possibly shorter, with the learning rate of its last update), first and final loss (the first and last
+    windows'), the median and total time per update, and the policy's parameter count."""
+    losses, every = recorder.losses, cfg.log_every_steps
+    if not losses:
+        raise RuntimeError("finetune: lerobot-train ran no training step")
+    ends = [k for k in range(1, len(losses) + 1) if k % every == 0 or k == len(losses)]
+    history = [{"step": k, "loss": float(np.mean(losses[max(0, k - every):k])), "lr": recorder.lrs[k - 1]}
+               for k in ends]
+    return {"first_loss": history[0]["loss"], "final_loss": history[-1]["loss"], "history": history,
+            "s_per_step_median": float(np.median(recorder.step_s)), "train_s": float(np.sum(recorder.step_s)),
+            "parameters": recorder.parameters}
+
+
+def save_policy(model: Path, out: Path, summary: dict[str, Any], tokenizer: Path | None = None,
+                pretrained_path: str | None = None) -> None:
+    """lerobot's final `pretrained_model` directory (a temporary sibling of `out`), completed with the tokenizer
+    (pi0.5) and the summary, renamed to `out`. config.json names the checkpoint training started from."""
+    config_file = model / CONFIG_NAME
+    config = json.loads(config_file.read_text())
+    config["pretrained_path"] = pretrained_path  # not the temporary starting directory
+    config_file.write_text(json.dumps(config, indent=4) + "\n")
+    if tokenizer is not None:
+        shutil.copytree(tokenizer, model / TOKENIZER_DIR)
+    (model / SUMMARY_FILE).write_text(json.dumps(summary, indent=2, default=str) + "\n")
+    _replace_dir(model, out)
 
 
 def _replace_dir(tmp: Path, path: Path) -> None:
     """Rename the finished `tmp` to `path`, replacing only a previously saved policy (or an empty directory)."""
+    _check_replaceable(path)
+    replace_dir(tmp, path)
+
+
+def _check_replaceable(path: Path) -> None:
     if path.is_symlink() or (path.exists() and not path.is_dir()):
         raise FileExistsError(f"{path} exists and is not a directory; refusing to replace it")
     if path.is_dir() and any(path.iterdir()) and not (path / SUMMARY_FILE).is_file():
         raise FileExistsError(f"{path} is a non-empty directory that is not a saved policy; refusing to replace it")
-    replace_dir(tmp, path)
 
 
 def load_policy(path: str | Path, device: str = "cpu", tokenizer: str | Path | None = None
