@@ -30,10 +30,6 @@ from wc.tasks.base import EpisodeSpec, get_task
 from wc.validate.config import ValidateConfig
 
 
-def _verdict(failure: tuple[str, int] | None) -> str:
-    return "accepted" if failure is None else failure[0]
-
-
 def teacher_check(params: dict[str, Any], store_path: str | Path, limit: int | None = None) -> dict[str, Any]:
     """Replay the generated episodes of `expand.task` in `store_path` in Newton; per plan both verdicts and the
     per-frame RMS vertex distance between the two rollouts."""
@@ -58,13 +54,12 @@ def teacher_check(params: dict[str, Any], store_path: str | Path, limit: int | N
         spec = EpisodeSpec(task.name, int(attrs["seed"]), int(attrs["cell"]), float(attrs["speed"]),
                            float(attrs["amplitude"]))
         (x, v), = execute(world, [ObjectState(ep["x"][0], ep["v"][0])], [ep["action"]], None)[0]
-        generated = None if attrs["accepted"] else (str(attrs["first_failure"]), -1)
         newton = judge(world, spec, x, v, ep["action"], world.scene.link_poses(ep["action"]), validate_cfg,
                        sim_cfg.frame_dt_s)
         frames = min(len(x), len(ep["x"]))
         rms = np.sqrt(np.square(x[:frames] - ep["x"][:frames]).sum(-1).mean(-1))  # (T,) m
-        plans.append({"episode": eid, "parent": attrs.get("parent"), "worldcontact": _verdict(generated),
-                      "newton": _verdict(newton), "newton_failure_frame": None if newton is None else int(newton[1]),
+        plans.append({"episode": eid, "parent": attrs.get("parent"), "worldcontact": "accepted" if attrs["accepted"] else str(attrs["first_failure"]),
+                      "newton": "accepted" if newton is None else newton[0], "newton_failure_frame": None if newton is None else int(newton[1]),
                       "rms_error_m": [float(e) for e in rms], "final_rms_error_m": float(rms[-1]),
                       "mean_rms_error_m": float(rms.mean())})
     accepted = [p for p in plans if p["worldcontact"] == "accepted"]

@@ -34,13 +34,13 @@ def window_weights(store: TrajectoryStore, phases: list[Phase], windows: list[Wi
     """(per-window sampling weights, or None for uniform; share of windows near an event)."""
     if oversample <= 0:
         return None, float("nan")
-    near: dict[tuple[str, int], np.ndarray] = {}
+    near: dict[Phase, np.ndarray] = {}
     for p in phases:
         a = read_phase_window(store, p, p.start, p.stop - p.start)
         events = np.flatnonzero(event_frames(a["action"], a["v"], store.dt, accel_m_s2)) + p.start
         marked = np.zeros(p.stop + length + margin_frames, dtype=bool)
         for e in events:
             marked[max(p.start, e - margin_frames):e + margin_frames + 1] = True
-        near[(p.episode, p.start)] = marked
-    hits = np.array([near[(w.phase.episode, w.phase.start)][w.start:w.start + length].any() for w in windows])
+        near[p] = marked
+    hits = np.array([near[w.phase][w.start:w.start + length].any() for w in windows])
     return np.where(hits, 1.0 + oversample, 1.0), float(hits.mean()) if len(hits) else float("nan")
