@@ -30,12 +30,13 @@ from tqdm import tqdm
 from wc.agent.planner import CoveragePlanner
 from wc.agent.runner import episode_seed, pad_to_length
 from wc.config import add_params_arguments, load_section, read_params
+from wc.devices import resolve_warp_device
 from wc.dynamics import ObjectState
 from wc.reports import environment_info, write_json_atomic
 from wc.scene.config import SceneConfig
 from wc.scene.scene import build_scene
 from wc.sim.config import SimConfig
-from wc.sim.newton_sim import NewtonSimulator, resolve_device
+from wc.sim.newton_sim import NewtonSimulator
 from wc.tasks.base import InfeasibleEpisode, get_task
 
 TASK = "lift_handle"
@@ -158,7 +159,7 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
 
     base = read_params(args.params, args.overrides)
-    device = resolve_device(args.device or base["sim"]["device"])
+    device = resolve_warp_device(args.device or base["sim"]["device"], "sim.device")
     own = base["scene"]["bag"]["target_vertices"]
     vertices = args.vertices or ([own] if args.quick else list(dict.fromkeys([own, PAPER_VERTICES])))
     worlds = args.worlds or ([1, 4, 8] if device.startswith("cuda") and not args.quick else [1])

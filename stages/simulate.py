@@ -46,7 +46,7 @@ def output_params(params: dict[str, Any]) -> dict[str, Any]:
 
 
 def task_results(params: dict[str, Any], keys: dict[str, str], memory: FailureMemory,
-                 workers: int) -> Iterator[TaskResult]:
+                 workers: int, deadline: float | None = None) -> Iterator[TaskResult]:
     """Each task's result, in task order (`keys`: task name -> task key). A task starts from the outcomes
     `memory` holds under its key when it starts. workers == 1: one after another in this process;
     else in that many spawned worker processes, at most `workers` tasks in flight."""
@@ -54,7 +54,7 @@ def task_results(params: dict[str, Any], keys: dict[str, str], memory: FailureMe
     if workers == 1:
         for index, name in enumerate(names):
             try:
-                yield run_task(params, index, keys[name], memory.outcomes(keys[name]))
+                yield run_task(params, index, keys[name], memory.outcomes(keys[name]), deadline)
             except Exception as err:
                 err.add_note(f"while simulating task {name!r}")
                 raise
@@ -69,7 +69,8 @@ def task_results(params: dict[str, Any], keys: dict[str, str], memory: FailureMe
             while index not in finished:
                 while waiting and len(running) < workers:
                     i = waiting.popleft()
-                    running[pool.submit(run_task, params, i, keys[names[i]], memory.outcomes(keys[names[i]]))] = i
+                    running[pool.submit(run_task, params, i, keys[names[i]], memory.outcomes(keys[names[i]]),
+                                        deadline)] = i
                 done, _ = wait(running, return_when=FIRST_COMPLETED)
                 for future in sorted(done, key=running.__getitem__):  # the first failing task in task order
                     i = running.pop(future)
@@ -83,11 +84,12 @@ def task_results(params: dict[str, Any], keys: dict[str, str], memory: FailureMe
 
 def simulate(params: dict[str, Any], out: str | Path = "data/source/raw.zarr",
              report: str | Path = "reports/simulate.json",
-             memory: str | Path | None = "data/agent/memory.json") -> dict[str, Any]:
+             memory: str | Path | None = "data/agent/memory.json", max_minutes: float = 0.0) -> dict[str, Any]:
     """Run every configured task until it has its accepted episodes (or runs out of attempts), in
     `agent.workers` processes; write the raw store (accepted and rejected episodes, in task order), the
     report, lift curves beside the report (simulate_lift.csv / .png), and append the outcomes to the
-    agent's failure memory (None: none), saved after each task."""
+    agent's failure memory (None: none), saved after each task. max_minutes > 0: no batch of episodes starts
+    after that wall time (a chunked GPU job; the report's `stopped_early` says so)."""
     scene_cfg = load_section(params, "scene", SceneConfig)
     sim_cfg = load_section(params, "sim", SimConfig)
     agent_cfg = load_section(params, "agent", AgentConfig)
@@ -103,8 +105,9 @@ def simulate(params: dict[str, Any], out: str | Path = "data/source/raw.zarr",
     frames = steps = 0
     curves = {}
     started = time.perf_counter()
+    deadline = time.time() + 60.0 * max_minutes if max_minutes > 0 else None
     with (simulator_store(out, scene_cfg, sim_cfg, tasks, phash, "stages.simulate") as (writer, union),
-          closing(task_results(params, keys, outcomes, agent_cfg.workers)) as results,
+          closing(task_results(params, keys, outcomes, agent_cfg.workers, deadline)) as results,
           tqdm(results, total=len(tasks), desc="simulate", unit="task") as bar):
         for result in bar:
             failures: dict[str, int] = {}
@@ -137,6 +140,7 @@ def simulate(params: dict[str, Any], out: str | Path = "data/source/raw.zarr",
         "episodes": sum(t["episodes"] for t in per_task.values()),
         "accepted": sum(t["accepted"] for t in per_task.values()),
         "tasks_with_accepted": sum(t["accepted"] > 0 for t in per_task.values()),
+        "stopped_early": deadline is not None and time.time() >= deadline,
         "frames": frames,
         "solver_steps": steps,
         "wall_s": wall,
@@ -162,11 +166,14 @@ def main(argv: list[str] | None = None) -> None:
     add_params_arguments(parser)
     parser.add_argument("--out", default="data/source/raw.zarr")
     parser.add_argument("--report", default="reports/simulate.json")
+    parser.add_argument("--max-minutes", type=float, default=0.0,
+                        help="start no batch of episodes after this wall time (0: no limit); what ran is kept")
     parser.add_argument("--memory", default="data/agent/memory.json",
                         help="the agent's failure memory, read and appended to ('' for none)")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)  # tiny IK tensors: one thread is fastest and immune to a busy second core
-    result = simulate(read_params(args.params, args.overrides), args.out, args.report, args.memory or None)
+    result = simulate(read_params(args.params, args.overrides), args.out, args.report, args.memory or None,
+                      args.max_minutes)
     print(f"simulate: {result['accepted']}/{result['episodes']} episodes accepted "
           f"({result['tasks_with_accepted']}/{len(result['tasks'])} tasks), {result['frames']} frames, "
           f"{result['simulated_s_per_wall_s']:.3f} simulated s per wall s")

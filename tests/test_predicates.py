@@ -6,6 +6,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+import warp as wp
 
 from wc.config import read_params, load_section
 from wc.scene.config import SceneConfig
@@ -103,14 +104,16 @@ def test_box_signed_distance_is_exact():
     assert np.isclose(box_signed_distance(world, np.zeros(3), q, half), 0.05)
 
 
+def _push_through_back_panel(bag, x: np.ndarray, start: int) -> None:
+    """From frame `start` on, a front-panel vertex at mid height sits beyond the back panel."""
+    body, p = bag.groups["body"], bag.vertices
+    score = np.abs(p[body, 0]) + np.abs(p[body, 2] - 0.06) + 10 * (p[body, 1] - p[:, 1].min())
+    x[start:, int(body[np.argmin(score)]), 1] = p[:, 1].max() + 0.02
+
+
 def test_crossing_triangles(scene, clean):
     bag = scene.objects["bag"]
-    body = bag.groups["body"]
-    p = bag.vertices
-    # a front-panel vertex at mid height, pushed through the back panel
-    score = np.abs(p[body, 0]) + np.abs(p[body, 2] - 0.06) + 10 * (p[body, 1] - p[:, 1].min())
-    i = int(body[np.argmin(score)])
-    clean["x"][8:, i, 1] = p[:, 1].max() + 0.02
+    _push_through_back_panel(bag, clean["x"], 8)
     assert crossing_edges(clean["x"][8], bag.faces, unique_edges(bag.faces)).max() >= 0
     loose = dataclasses.replace(CFG, max_edge_strain=100.0)  # the push stretches its edges; judge crossings only
     assert check(scene, clean, loose) == ("self_intersection", 8)
@@ -329,3 +332,19 @@ def test_blow_up_says_which_criterion_fired(scene, clean):
     assert blow_up(scene, ep, CFG) == 6
     detail = blow_up_detail(scene, ep, CFG, 6)
     assert detail["criterion"] == "strain" and detail["max_edge_strain"] > CFG.max_edge_strain
+
+
+def test_self_intersection_runs_on_the_configured_warp_device(scene, clean):
+    """validate.device picks the warp device of the check: auto is the CPU here and finds the same crossing;
+    a CUDA device this machine lacks is an error naming the key; an unknown name fails validation."""
+    _push_through_back_panel(scene.objects["bag"], clean["x"], 5)
+    loose = dataclasses.replace(CFG, max_edge_strain=100.0, device="auto")
+    expected = ("self_intersection", 5)
+    if wp.is_cuda_available():
+        assert check(scene, clean, dataclasses.replace(loose, device="cuda:0")) == expected
+    else:
+        assert check(scene, clean, loose) == expected
+        with pytest.raises(RuntimeError, match="validate.device is 'cuda'"):
+            check(scene, clean, dataclasses.replace(loose, device="cuda"))
+    with pytest.raises(ValueError, match="validate.device must be cpu, cuda"):
+        dataclasses.replace(loose, device="tpu").validate()

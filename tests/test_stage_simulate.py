@@ -86,3 +86,31 @@ def test_dvc_pipeline_declares_simulate():
     listed = subprocess.run([sys.executable, "-m", "dvc", "stage", "list"], cwd=ROOT, capture_output=True, text=True,
                             check=True).stdout
     assert "simulate" in listed and "raw.zarr" in listed
+
+
+def test_bad_contact_buffer_fails_without_output(tmp_path):
+    params = read_params(ROOT / "params.yaml", SHORT)
+    params["sim"]["body_particle_contact_buffer"] = 0
+    with pytest.raises(ValueError, match="body_particle_contact_buffer must be >= 1"):
+        simulate(params, tmp_path / "raw.zarr", tmp_path / "simulate.json", tmp_path / "memory.json")
+    _no_output(tmp_path)
+
+
+@pytest.mark.slow
+def test_deadline_passed_keeps_a_valid_store(tmp_path):
+    """A chunked job whose time is up starts no batch: the report says so and the store is still whole."""
+    report = simulate(read_params(ROOT / "params.yaml", SHORT), tmp_path / "raw.zarr", tmp_path / "simulate.json",
+                      tmp_path / "memory.json", max_minutes=1e-9)
+    assert report["stopped_early"] is True and report["episodes"] == 0
+    assert TrajectoryStore(tmp_path / "raw.zarr").episode_ids == []
+
+
+@pytest.mark.slow
+def test_several_worlds_fill_every_batch(tmp_path):
+    """With 2 worlds a task wanting 1 episode still simulates a full batch of 2 (an idle world costs as much)."""
+    report = _run(tmp_path, ["sim.worlds=2", "agent.max_attempts_per_task=2"])
+    assert report["episodes"] == 2 and report["stopped_early"] is False
+    store = TrajectoryStore(tmp_path / "raw.zarr")
+    assert len(store.episode_ids) == 2
+    seeds = [store.episode_attrs(e)["seed"] for e in store.episode_ids]
+    assert len(set(seeds)) == 2

@@ -22,6 +22,7 @@ def write_lift_curves(curves: dict[str, tuple[np.ndarray, str]], dt: float, csv_
     ax.set_ylabel("lowest vertex above table [cm]")
     ax.set_title("simulate: object lift per episode")
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=7)
+    if curves:
+        ax.legend(fontsize=7)
     fig.tight_layout()
     save_figure_atomic(fig, png_path)

@@ -36,7 +36,8 @@ class TaskResult:
     table_top_z: float  # table top height [m], for the lift curves
 
 
-def run_task(params: dict[str, Any], task_index: int, task_key: str, history: Sequence[Outcome]) -> TaskResult:
+def run_task(params: dict[str, Any], task_index: int, task_key: str, history: Sequence[Outcome],
+             deadline: float | None = None) -> TaskResult:
     """Run task `agent.tasks[task_index]` until it has its accepted episodes or runs out of attempts.
     `history`: the memory's outcomes under `task_key` when the task starts (what its planner learns from)."""
     started = time.perf_counter()
@@ -48,7 +49,7 @@ def run_task(params: dict[str, Any], task_index: int, task_key: str, history: Se
     world = build_task_world(scene_cfg, sim_cfg, task)
     planner = CoveragePlanner(FailureMemory(None, history), {task.name: task_key})
     records = list(run_episodes(world, planner, task_index, agent_cfg.episodes_per_task,
-                                agent_cfg.max_attempts_per_task, agent_cfg.seed, validate_cfg))
+                                agent_cfg.max_attempts_per_task, agent_cfg.seed, validate_cfg, deadline=deadline))
     return TaskResult(task.name, records, planner.coverage(task), world.solver_steps,
                       time.perf_counter() - started, float(world.scene.table.top_z))
 

@@ -8,6 +8,8 @@ logged with its frame and fed back to the planner, which remembers it across run
 
 from __future__ import annotations
 
+import time
+
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -245,13 +247,15 @@ def judge(world: TaskWorld, spec: EpisodeSpec, x: np.ndarray, v: np.ndarray, act
 
 def run_episodes(world: TaskWorld, planner: Planner, task_index: int, wanted: int, max_attempts: int,
                  stage_seed: int, validate_cfg: ValidateConfig,
-                 on_frame: Callable[[], None] | None = None) -> Iterator[EpisodeRecord]:
+                 on_frame: Callable[[], None] | None = None, deadline: float | None = None) -> Iterator[EpisodeRecord]:
     """Simulate episodes of one task, `sim.worlds` at a time, until `wanted` are accepted or
-    `max_attempts` were tried; yields each with its verdict."""
+    `max_attempts` were tried; yields each with its verdict. With several worlds every batch is full (an idle
+    world costs a GPU step as much as a busy one), so a task may end with more than `wanted` accepted.
+    `deadline` (time.time() seconds): no batch starts after it (a chunked GPU job keeps what it simulated)."""
     task, scene, sim = world.task, world.sim_scene, world.sim
     accepted = attempts = 0
-    while accepted < wanted and attempts < max_attempts:
-        batch = min(sim.worlds, wanted - accepted, max_attempts - attempts)
+    while accepted < wanted and attempts < max_attempts and (deadline is None or time.time() < deadline):
+        batch = min(sim.worlds, max_attempts - attempts)
         specs = [planner.propose(task, episode_seed(stage_seed, task_index, attempts + i)) for i in range(batch)]
         attempts += batch
         runnable, unreachable = reset_batch(world, specs)

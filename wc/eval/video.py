@@ -20,6 +20,7 @@ import cv2
 import numpy as np
 
 from wc.data.store import TrajectoryStore
+from wc.devices import resolve_warp_device
 from wc.eval.stress_config import StressConfig
 from wc.policy_eval.videos import write_mp4
 from wc.render.contact_sheet import sheet_frame_indices
@@ -28,7 +29,6 @@ from wc.render.renderer import EpisodeRenderer
 from wc.render.rig import render_cameras
 from wc.reports import pyplot, save_figure_atomic
 from wc.scene.config import SceneConfig
-from wc.sim.newton_sim import resolve_device
 
 GROUND_TRUTH_LABEL = "ground truth (Newton)"
 FRAMES_PER_BATCH = 8
@@ -140,8 +140,8 @@ def side_by_side_video(store: TrajectoryStore, scene_cfg: SceneConfig, cfg: Stre
         diverged[name] = first_bad
         labels.append(name if name == v.method else f"{name} (best baseline)")
     camera = render_cameras(scene_cfg.cameras, [v.camera], v.panel_px, v.panel_px)
-    renderer = EpisodeRenderer(episode_geometry(store, eid, scene_cfg), camera, resolve_device(v.device),
-                               FRAMES_PER_BATCH, shadows=True)
+    device = resolve_warp_device(v.device, "evaluate.video.device")
+    renderer = EpisodeRenderer(episode_geometry(store, eid, scene_cfg), camera, device, FRAMES_PER_BATCH, shadows=True)
     poses = recorded["link_poses"][:frames]
     rendered = renderer.render(np.concatenate(sequences), np.concatenate([poses] * len(sequences)),
                                f"{store.path}: episode {eid}")[v.camera]

@@ -29,6 +29,7 @@ import numpy as np
 
 from wc.agent.runner import build_task_world, reset_batch
 from wc.config import ParamsError, load_section, read_params
+from wc.devices import resolve_warp_device
 from wc.dynamics import ObjectState
 from wc.policy.dataset import RIGHT_ARM, fps_of
 from wc.policy.dataset_config import DatasetConfig
@@ -43,7 +44,6 @@ from wc.render.renderer import EpisodeRenderer
 from wc.render.rig import render_cameras
 from wc.scene.config import SceneConfig
 from wc.sim.config import SimConfig
-from wc.sim.newton_sim import resolve_device
 from wc.tasks.bag_geometry import lowest_height
 from wc.tasks.base import EpisodeSpec, Task, get_task
 
@@ -71,7 +71,7 @@ class WorldContactLiftEnv(gym.Env):
         elif overrides:
             raise ValueError("overrides apply to a params file; edit the params dict instead")
         self.cfg = load_section(params, "policy_eval", PolicyEvalConfig)
-        self.device = resolve_device(self.cfg.device)
+        self.device = resolve_warp_device(self.cfg.device, "policy_eval.device")
         sim_cfg = dataclasses.replace(load_section(params, "sim", SimConfig), worlds=1, device=self.device)
         scene_cfg = load_section(params, "scene", SceneConfig)
         render_cfg = load_section(params, "render", RenderConfig)

@@ -18,6 +18,7 @@ from tqdm import tqdm
 
 from wc.config import ParamsError, load_section, params_hash
 from wc.data.store import TrajectoryStore
+from wc.devices import resolve_warp_device
 from wc.render.config import RenderConfig
 from wc.render.contact_sheet import write_contact_sheet
 from wc.render.frames import RenderedStore, RenderedWriter
@@ -26,7 +27,6 @@ from wc.render.renderer import EpisodeRenderer
 from wc.render.rig import check_camera_links, render_cameras
 from wc.reports import environment_info, write_json_atomic
 from wc.scene.config import CameraConfig, SceneConfig
-from wc.sim.newton_sim import resolve_device
 
 SECTIONS = ["render", "scene"]
 SOURCE = ("data/source/trajectories.zarr", "data/rendered/source.zarr")
@@ -111,7 +111,7 @@ def render(params: dict[str, Any], pairs: Sequence[tuple[str | Path, str | Path]
     pairs = [(Path(a), Path(b)) for a, b in (default_pairs() if pairs is None else pairs)]
     if not pairs:
         raise ValueError("render: no (trajectory store, output store) pair given")
-    device = resolve_device(cfg.device)
+    device = resolve_warp_device(cfg.device, "render.device")
     phash = params_hash(params, SECTIONS)
     renderers = _Renderers(cameras, device, cfg)
     started = time.perf_counter()

@@ -52,6 +52,8 @@ class SimConfig:
     sphere: RigidMaterial
     cube: RigidMaterial
     self_contact_filter_rings: int = 2  # self-contact skips element pairs this many mesh rings apart or closer (Newton's default 2)
+    body_particle_contact_buffer: int = 256  # VBD per-body list of cloth contacts (Newton's default 256); a gripper
+    # box pressed into a folded strap can exceed it ("Per-body particle contact buffer overflowed")
 
     def validate(self) -> None:
         if not self.dt_s > 0:
@@ -59,6 +61,8 @@ class SimConfig:
         for name in ("substeps", "iterations", "worlds"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.body_particle_contact_buffer < 1:
+            raise ValueError(f"body_particle_contact_buffer must be >= 1, got {self.body_particle_contact_buffer}")
         if self.self_contact_filter_rings < 0:
             raise ValueError(f"self_contact_filter_rings must be >= 0, got {self.self_contact_filter_rings}")
         if self.settle_s < 0:

@@ -13,6 +13,7 @@ import numpy as np
 import warp as wp
 
 import newton
+from wc.devices import resolve_warp_device
 from wc.dynamics import ObjectState
 from wc.scene.scene import Scene
 from wc.sim.config import SimConfig
@@ -20,15 +21,6 @@ from wc.sim.kinematic import interpolate_actions, pose_twists, quat_rotate
 from wc.sim.rigid_fit import rigid_pose_from_vertices
 
 GRAVITY = (0.0, 0.0, -9.81)
-
-
-def resolve_device(name: str) -> str:
-    """'auto' -> 'cuda:0' when a CUDA device exists, else 'cpu'."""
-    if name == "auto":
-        return "cuda:0" if wp.is_cuda_available() else "cpu"
-    if name.startswith("cuda") and not wp.is_cuda_available():
-        raise RuntimeError(f"sim.device is {name!r} but no CUDA device is available (use cpu or auto)")
-    return name
 
 
 @wp.kernel
@@ -52,7 +44,7 @@ class NewtonSimulator:
     def __init__(self, scene: Scene, cfg: SimConfig, worlds: int | None = None):
         self.scene, self.cfg = scene, cfg
         self.worlds = worlds or cfg.worlds
-        self.device = resolve_device(cfg.device)
+        self.device = resolve_warp_device(cfg.device, "sim.device")
         self.num_links = len(scene.link_names)
         world = self._world_builder()
         self.particles_per_world = world.particle_count
@@ -72,6 +64,7 @@ class NewtonSimulator:
             particle_self_contact_margin=cfg.self_contact_margin_m,
             particle_self_contact_gap=cfg.self_contact_gap_m,
             particle_topological_contact_filter_threshold=cfg.self_contact_filter_rings,
+            rigid_body_particle_contact_buffer_size=cfg.body_particle_contact_buffer,
         )
         self.pipeline = newton.CollisionPipeline(
             self.model, soft_contact_gap=cfg.soft_contact_gap_m, enable_rigid_soft_full_surface_contact=True
@@ -89,7 +82,7 @@ class NewtonSimulator:
 
     @staticmethod
     def device_name(cfg: SimConfig) -> str:
-        return resolve_device(cfg.device)
+        return resolve_warp_device(cfg.device, "sim.device")
 
     # -- building ---------------------------------------------------------------------------
 

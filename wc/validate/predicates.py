@@ -14,6 +14,7 @@ from typing import Callable
 
 import numpy as np
 
+from wc.devices import resolve_warp_device
 from wc.scene.cameras import camera_pose, intrinsics
 from wc.scene.mesh import ObjectMesh
 from wc.scene.piper import PAD_CENTRE_IN_FINGER_M, PAD_HALF_EXTENTS_M
@@ -273,13 +274,14 @@ def penetration(scene: Scene, ep: Episode, cfg: ValidateConfig) -> int | None:
 
 def self_intersection(scene: Scene, ep: Episode, cfg: ValidateConfig) -> int | None:
     """First checked frame (every self_intersection_every-th) where a cloth mesh edge crosses a
-    non-adjacent triangle of the same mesh (warp BVH ray casts, see self_intersection.py)."""
+    non-adjacent triangle of the same mesh (warp BVH ray casts on validate.device, see self_intersection.py)."""
     slices = scene.vertex_slices()
     cloth = [(slices[n], m.faces, unique_edges(m.faces)) for n, m in scene.objects.items()
              if scene.object_kinds[n] == "cloth"]
+    device = resolve_warp_device(cfg.device, "validate.device") if cloth else "cpu"
     for t in range(0, len(ep.x), cfg.self_intersection_every):
         for sl, faces, edges in cloth:
-            if (crossing_edges(ep.x[t, sl], faces, edges) >= 0).any():
+            if (crossing_edges(ep.x[t, sl], faces, edges, device) >= 0).any():
                 return t
     return None
 
