@@ -52,8 +52,8 @@ class SimConfig:
     sphere: RigidMaterial
     cube: RigidMaterial
     self_contact_filter_rings: int = 2  # self-contact skips element pairs this many mesh rings apart or closer (Newton's default 2)
-    body_particle_contact_buffer: int = 256  # VBD per-body list of cloth contacts (Newton's default 256); a gripper
-    # box pressed into a folded strap can exceed it ("Per-body particle contact buffer overflowed")
+    body_particle_contact_buffer: int = 256  # VBD per-body list of cloth contact candidates (Newton's default 256).
+    # Overflowing it is not wrong (Newton then scans all stored contacts) but slower, and prints a warning per step
 
     def validate(self) -> None:
         if not self.dt_s > 0:
