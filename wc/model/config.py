@@ -29,6 +29,10 @@ class ModelConfig:
     rope_max_wavelength_m: float = 1.0
     tokenizer: Literal["contact", "linear"] = "contact"  # "linear": the no-contact-tokenizer ablation
     compress: bool = True  # False: the no-hierarchical-compression ablation (full-resolution attention)
+    # A departure from the paper: the spatial and topology kernels also see each pair's rest-space relation
+    # ([Δu, Δv, rest distance] / radius; far across objects), and the topology window follows the rest distance,
+    # so stretched mesh neighbours keep their weight and a folded strap's other layer is told from a neighbour.
+    rest_features: bool = False
     # How the head's Δx becomes X̂ (the paper is silent on the output parametrisation):
     # "integrate": X̂ = X + Δt·V̂ + ΔX, ΔX a residual on the semi-implicit Euler step (positions follow the
     # predicted velocities, as they do in the stored frames, where V is the frame displacement / Δt);

@@ -126,42 +126,43 @@ class ContinuousConv(nn.Module):
         qi: Tensor,
         pj: Tensor,
         offset_transform: Tensor | None = None,
+        pair_feats: Tensor | None = None,
+        window_dist: Tensor | None = None,
     ) -> Tensor:
         """Aggregate neighbour features onto queries.
 
-        query_pos (N, 3), neighbor_pos (M, 3) [m]; neighbor_feats (M, Cin); pairs qi, pj (P,) int64
+        query_pos (N, 3), neighbor_pos (M, 3) [m]; neighbor_feats (M, Cin - Cp); pairs qi, pj (P,) int64
         indexing query and neighbour; offset_transform (3, 3) applied to offsets before the kernel
-        lookup (the window uses the untransformed offset). Returns (N, Cout). Geometry and the sum
-        over pairs run in float32 (float64 if positions are float64) even under autocast.
+        lookup (the window uses the untransformed offset). pair_feats (P, Cp): features of the pair itself,
+        appended to the neighbour's; window_dist (P,) [m]: the distance the window fades with instead of
+        |r| (e.g. the rest distance, so a stretched pair keeps its weight). Returns (N, Cout). Geometry and
+        the sum over pairs run in float32 (float64 if positions are float64) even under autocast.
         """
         n, k = query_pos.shape[0], self.kernel_size
         if query_pos.ndim != 2 or query_pos.shape[1] != 3:
             raise ValueError(f"query_pos must be (N, 3), got {tuple(query_pos.shape)}")
         if neighbor_pos.ndim != 2 or neighbor_pos.shape[1] != 3:
             raise ValueError(f"neighbor_pos must be (M, 3), got {tuple(neighbor_pos.shape)}")
-        if neighbor_feats.shape != (neighbor_pos.shape[0], self.in_channels):
-            raise ValueError(
-                f"neighbor_feats must be ({neighbor_pos.shape[0]}, {self.in_channels}), got {tuple(neighbor_feats.shape)}"
-            )
         if qi.ndim != 1 or qi.shape != pj.shape:
             raise ValueError(f"qi and pj must be equal-length 1-D index tensors, got {tuple(qi.shape)}, {tuple(pj.shape)}")
-        if offset_transform is not None and offset_transform.shape != (3, 3):
-            raise ValueError(f"offset_transform must be (3, 3), got {tuple(offset_transform.shape)}")
+        self._check_features(neighbor_pos, neighbor_feats, pair_feats, window_dist, qi.shape, offset_transform)
 
         dtype = _geometry_dtype(query_pos)
         with torch.autocast(device_type=query_pos.device.type, enabled=False):
             r = neighbor_pos.to(dtype)[pj] - query_pos.to(dtype)[qi]  # (P, 3) [m]
-            importance, grid_coord = self._kernel_coordinates(r, offset_transform)
+            importance, grid_coord = self._kernel_coordinates(r, offset_transform, window_dist)
             cell, weight = trilinear_corners(grid_coord, k)  # (P, 8)
-            feats = neighbor_feats.to(dtype)[pj]  # (P, Cin)
+            feats = _with_pair_feats(neighbor_feats.to(dtype)[pj], pair_feats)  # (P, Cin)
             values = (weight * importance[:, None])[:, :, None] * feats[:, None, :]  # (P, 8, Cin)
             acc = torch.zeros(n * k**3, self.in_channels, dtype=dtype, device=query_pos.device)
             acc.index_add_(0, (qi[:, None] * k**3 + cell).reshape(-1), values.reshape(-1, self.in_channels))
         return self._apply_kernel(acc.reshape(n, k**3 * self.in_channels))
 
     def forward_padded(self, query_pos: Tensor, neighbor_pos: Tensor, neighbor_feats: Tensor, index: Tensor,
-                       valid: Tensor, offset_transform: Tensor | None = None) -> Tensor:
-        """`forward` over fixed-K padded neighbour slots: index (N, K) into the neighbours, valid (N, K) bool.
+                       valid: Tensor, offset_transform: Tensor | None = None, pair_feats: Tensor | None = None,
+                       window_dist: Tensor | None = None) -> Tensor:
+        """`forward` over fixed-K padded neighbour slots: index (N, K) into the neighbours, valid (N, K) bool;
+        pair_feats (N, K, Cp) and window_dist (N, K) as in `forward`, per slot.
 
         Static shapes and no scatter: each slot's K^3 trilinear weights are the product of per-axis hat functions
         max(0, 1 - |g - node|) (equal to the corner weights of `trilinear_corners` inside the grid), and the sum
@@ -170,16 +171,11 @@ class ContinuousConv(nn.Module):
         n, k = query_pos.shape[0], self.kernel_size
         if index.ndim != 2 or index.shape[0] != n or valid.shape != index.shape:
             raise ValueError(f"index and valid must both be (N={n}, K), got {tuple(index.shape)}, {tuple(valid.shape)}")
-        if neighbor_feats.shape != (neighbor_pos.shape[0], self.in_channels):
-            raise ValueError(
-                f"neighbor_feats must be ({neighbor_pos.shape[0]}, {self.in_channels}), got {tuple(neighbor_feats.shape)}"
-            )
-        if offset_transform is not None and offset_transform.shape != (3, 3):
-            raise ValueError(f"offset_transform must be (3, 3), got {tuple(offset_transform.shape)}")
+        self._check_features(neighbor_pos, neighbor_feats, pair_feats, window_dist, index.shape, offset_transform)
         dtype = _geometry_dtype(query_pos)
         with torch.autocast(device_type=query_pos.device.type, enabled=False):
             r = _gather_rows(neighbor_pos.to(dtype), index) - query_pos.to(dtype)[:, None]  # (N, K, 3) [m]
-            importance, grid_coord = self._kernel_coordinates(r, offset_transform)
+            importance, grid_coord = self._kernel_coordinates(r, offset_transform, window_dist)
             importance = importance * valid.to(dtype)
             nodes = torch.arange(k, device=r.device, dtype=dtype)
             # clamped to the grid like `trilinear_corners` (a transformed offset may leave the unit ball)
@@ -188,13 +184,29 @@ class ContinuousConv(nn.Module):
             wx, wy, wz = hat.unbind(-2)
             cells = (wz[..., :, None, None] * wy[..., None, :, None] * wx[..., None, None, :]).flatten(-3)  # [z, y, x]
             cells = cells * importance[..., None]  # (N, K, k^3)
-            feats = _gather_rows(neighbor_feats.to(dtype), index)  # (N, K, Cin)
+            feats = _with_pair_feats(_gather_rows(neighbor_feats.to(dtype), index), pair_feats)  # (N, K, Cin)
             acc = torch.bmm(cells.transpose(1, 2), feats)  # (N, k^3, Cin): sum over slots
         return self._apply_kernel(acc.reshape(n, k**3 * self.in_channels))
 
-    def _kernel_coordinates(self, r: Tensor, offset_transform: Tensor | None) -> tuple[Tensor, Tensor]:
-        """Window importance (...,) and kernel grid coordinates (..., 3) in [0, K-1] of offsets r (..., 3) [m]."""
-        importance = poly6_window(r.square().sum(-1) / self.radius**2)
+    def _check_features(self, neighbor_pos: Tensor, neighbor_feats: Tensor, pair_feats: Tensor | None,
+                        window_dist: Tensor | None, pairs: torch.Size, offset_transform: Tensor | None) -> None:
+        """ValueError naming the argument whose shape does not fit `pairs` (P,) or (N, K) and the channels."""
+        own = self.in_channels - (0 if pair_feats is None else pair_feats.shape[-1])
+        if neighbor_feats.shape != (neighbor_pos.shape[0], own):
+            raise ValueError(f"neighbor_feats must be ({neighbor_pos.shape[0]}, {own}), got {tuple(neighbor_feats.shape)}")
+        if pair_feats is not None and pair_feats.shape[:-1] != pairs:
+            raise ValueError(f"pair_feats must be ({', '.join(map(str, pairs))}, Cp), got {tuple(pair_feats.shape)}")
+        if window_dist is not None and window_dist.shape != pairs:
+            raise ValueError(f"window_dist must be {tuple(pairs)}, got {tuple(window_dist.shape)}")
+        if offset_transform is not None and offset_transform.shape != (3, 3):
+            raise ValueError(f"offset_transform must be (3, 3), got {tuple(offset_transform.shape)}")
+
+    def _kernel_coordinates(self, r: Tensor, offset_transform: Tensor | None,
+                            window_dist: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """Window importance (...,) and kernel grid coordinates (..., 3) in [0, K-1] of offsets r (..., 3) [m];
+        the window fades with window_dist (...,) [m] when given, else with |r|."""
+        dist_sq = r.square().sum(-1) if window_dist is None else window_dist.to(r.dtype).square()
+        importance = poly6_window(dist_sq / self.radius**2)
         if offset_transform is not None:
             r = r @ offset_transform.to(r.dtype).T
         cube = ball_to_cube_volume_preserving(r / self.radius)  # in [-1, 1]^3
@@ -206,6 +218,11 @@ class ContinuousConv(nn.Module):
         if self.bias is not None:
             out = out + self.bias
         return out
+
+
+def _with_pair_feats(feats: Tensor, pair_feats: Tensor | None) -> Tensor:
+    """Each pair's neighbour features (..., C) followed by its own pair features (..., Cp), if any."""
+    return feats if pair_feats is None else torch.cat((feats, pair_feats.to(feats.dtype)), dim=-1)
 
 
 def _gather_rows(t: Tensor, index: Tensor) -> Tensor:

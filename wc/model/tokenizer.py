@@ -22,6 +22,21 @@ from wc.model.neighbors import nearest_index, radius_pairs
 TOKEN_DIM = 192
 VERTEX_FEATURES = 7  # [1, v / velocity_scale (3), c (3)] for vertices; [v / vs (3), tag, normal (3)] for samples
 SAMPLE_ATTRIBUTES = 4  # [scaled tag, unit normal]
+REST_PAIR_FEATURES = 3  # [Δu, Δv, rest distance] / radius of a same-object pair (rest_features switch)
+REST_FAR = 2.0  # rest-feature cap: pairs of two objects, or this many radii apart in rest space, read as "far"
+
+
+def rest_pair_features(uv: Tensor, obj: Tensor, qi: Tensor, pj: Tensor, radius: float) -> tuple[Tensor, Tensor]:
+    """Rest-space relation of pairs (qi, pj) (any equal shape) of vertices with rest uv (M, 2) [m] on objects
+    obj (M,): features (..., 3) = [Δu, Δv, |Δuv|] / radius, clamped to ±REST_FAR, with [0, 0, REST_FAR] for
+    pairs of different objects; and the rest distance (...,) [m] (+inf across objects). A mesh neighbour reads
+    near in rest space however the cloth is folded; another layer of the same strap reads far."""
+    d = uv[pj] - uv[qi]
+    same = obj[pj] == obj[qi]
+    dist = torch.where(same, d.norm(dim=-1), torch.full_like(d[..., 0], float("inf")))
+    rel = torch.where(same[..., None], (d / radius).clamp(-REST_FAR, REST_FAR), torch.zeros_like(d))
+    far = (dist / radius).clamp(max=REST_FAR)
+    return torch.cat((rel, far[..., None]), dim=-1), dist
 
 
 def topology_pairs(rest_uv: Tensor, object_index: Tensor, radius: float) -> tuple[Tensor, Tensor]:
@@ -128,8 +143,10 @@ class ContactTokenizer(nn.Module):
         topology_channels: int = 32,
         boundary_channels: int = 64,
         direct_channels: int = 64,
+        rest_features: bool = False,
     ) -> None:
         super().__init__()
+        self.rest_features = rest_features
         self.register_buffer("velocity_scale", axis_scale(velocity_scale, "velocity_scale"), persistent=False)
         if boundary_channels % 2 != 0:
             raise ValueError(f"boundary_channels must be even (split C/E), got {boundary_channels}")
@@ -139,10 +156,12 @@ class ContactTokenizer(nn.Module):
         self.environment_radius = float(environment_radius)
         self.out_dim = spatial_channels + topology_channels + boundary_channels + direct_channels
         f = VERTEX_FEATURES
-        self.spatial = ContinuousConv(f, spatial_channels, spatial_radius, kernel_size)
+        pair = REST_PAIR_FEATURES if rest_features else 0
+        self.spatial = ContinuousConv(f + pair, spatial_channels, spatial_radius, kernel_size)
         # rest uv is isometric to the rest shape (metres), so uv-neighbours start within
-        # topology_radius in 3D too; a pair stretched beyond it fades out through the window.
-        self.topology = ContinuousConv(f, topology_channels, topology_radius, kernel_size)
+        # topology_radius in 3D too; a pair stretched beyond it fades out through the window
+        # (rest_features: the window follows the rest distance instead, so no pair drops out).
+        self.topology = ContinuousConv(f + pair, topology_channels, topology_radius, kernel_size)
         self.environment = ContinuousConv(f, boundary_channels // 2, environment_radius, kernel_size)
         self.controllable = ContinuousConv(f, boundary_channels // 2, controllable_radius, kernel_size)
         # Translation invariance: absolute x is no token feature (only offsets r_ij and the vertex's
@@ -198,22 +217,29 @@ class ContactTokenizer(nn.Module):
             "controllable": PairQuery(xf, ctrl_xf, self.controllable_radius, scene,
                                       _scene_ids(b, ctrl_x.shape[1], device), b),
         }
+        rest = self._rest_relation(attributes, object_index, b)
         if isinstance(neighbors, FixedNeighbors):
             found = neighbors.search(queries)
-            g_s = self.spatial.forward_padded(xf, xf, u, found["spatial"].index, found["spatial"].valid, frame)
-            g_t = self.topology.forward_padded(xf, xf, u, *neighbors.topology(b), frame)
+            s_index, s_valid = found["spatial"].index, found["spatial"].valid
+            t_index, t_valid = neighbors.topology(b)
+            rows = torch.arange(b * n, device=device)[:, None]
+            g_s = self.spatial.forward_padded(xf, xf, u, s_index, s_valid, frame,
+                                              *rest(rows, s_index, self.spatial_radius, window=False))
+            g_t = self.topology.forward_padded(xf, xf, u, t_index, t_valid, frame,
+                                               *rest(rows, t_index, self.topology_radius, window=True))
             g_e = self.environment.forward_padded(xf, env_xf, env_u, found["environment"].index,
                                                   found["environment"].valid, frame)
             g_c = self.controllable.forward_padded(xf, ctrl_xf, ctrl_u, found["controllable"].index,
                                                    found["controllable"].valid, frame)
         else:
             pairs = search_pairs(queries, neighbors, _state_flags(x, v, ti, tj, n), lambda f: _raise_on_flags(f, n))
-            g_s = self.spatial(xf, xf, u, *pairs["spatial"], frame)
+            g_s = self.spatial(xf, xf, u, *pairs["spatial"], frame,
+                               *rest(*pairs["spatial"], self.spatial_radius, window=False))
             # Topological contact: rest-uv neighbours, offset per scene, r from current positions.
             shift = (torch.arange(b, device=device) * n)[:, None]
             ti_b = (ti.to(device)[None, :] + shift).reshape(-1)
             tj_b = (tj.to(device)[None, :] + shift).reshape(-1)
-            g_t = self.topology(xf, xf, u, ti_b, tj_b, frame)
+            g_t = self.topology(xf, xf, u, ti_b, tj_b, frame, *rest(ti_b, tj_b, self.topology_radius, window=True))
             # Boundary contact with the prescribed samples at t + dt.
             g_e = self.environment(xf, env_xf, env_u, *pairs["environment"], frame)
             g_c = self.controllable(xf, ctrl_xf, ctrl_u, *pairs["controllable"], frame)
@@ -221,6 +247,19 @@ class ContactTokenizer(nn.Module):
         direct = self.direct(u)  # [1, v_i, c_i]
         h = torch.cat((g_s, g_t, g_e, g_c, direct), dim=1)
         return h.reshape(b, n, self.out_dim)
+
+    def _rest_relation(self, attributes: Tensor, object_index: Tensor, b: int):
+        """pairs (qi, pj) over the B*N flattened vertices, radius, window -> (pair_feats, window_dist) for a
+        branch: (None, None) unless rest_features; window: the window fades with the rest distance."""
+        uv = attributes[:, 1:3].float().repeat(b, 1)
+        obj = object_index.to(attributes.device).repeat(b)
+
+        def relation(qi: Tensor, pj: Tensor, radius: float, window: bool) -> tuple[Tensor | None, Tensor | None]:
+            if not self.rest_features:
+                return None, None
+            feats, dist = rest_pair_features(uv, obj, qi, pj, radius)
+            return feats, (dist if window else None)
+        return relation
 
     def _samples(self, sx: Tensor, sv: Tensor, sattr: Tensor, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
         """Flattened sample positions (B*M, 3) and features u_j = [v_j / vs, attr_j] (B*M, 7) for g^C or g^E."""

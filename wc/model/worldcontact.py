@@ -39,7 +39,7 @@ class WorldContact(nn.Module):
             self.tokenizer: nn.Module = ContactTokenizer(
                 spatial_radius=config.spatial_radius_m, topology_radius=config.topology_radius_m,
                 controllable_radius=config.controllable_radius_m, environment_radius=config.environment_radius_m,
-                velocity_scale=velocity_m_s, kernel_size=config.kernel_size)
+                velocity_scale=velocity_m_s, kernel_size=config.kernel_size, rest_features=config.rest_features)
         else:
             self.tokenizer = LinearTokenizer(velocity_scale=velocity_m_s)
         rope = RoPE3D(WIDTH // config.heads, config.rope_min_wavelength_m, config.rope_max_wavelength_m)
