@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 
+from wc.cli import run_cli
 from wc.config import add_params_arguments, read_params
 from wc.eval.stage import evaluate
 
@@ -44,4 +45,4 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_cli(main, "evaluate")

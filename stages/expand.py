@@ -1,5 +1,6 @@
 """Stage `expand`: world-model trajectories of one task (params `expand`) -> data/expanded/trajectories.zarr
-(accepted generated episodes only, `source: worldcontact`) and reports/expand.json.
+(accepted generated episodes only, `source: worldcontact`), data/expanded/rejected.zarr (the rejected ones, for
+the teacher check) and reports/expand.json.
 
     python -m stages.expand [--params params.yaml] [--set expand.target_trajectories=10 ...]
 
@@ -10,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 
+from wc.cli import run_cli
 from wc.config import add_params_arguments, read_params
 from wc.expand.stage import expand
 
@@ -23,8 +25,11 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--store", default="data/source/trajectories.zarr")
     parser.add_argument("--out", default="data/expanded/trajectories.zarr")
     parser.add_argument("--report", default="reports/expand.json")
+    parser.add_argument("--rejected-out", default="data/expanded/rejected.zarr",
+                        help="store of the rejected generated episodes, for the teacher check ('' to not keep them)")
     args = parser.parse_args(argv)
-    r = expand(read_params(args.params, args.overrides), args.model, args.store, args.out, args.report)
+    r = expand(read_params(args.params, args.overrides), args.model, args.store, args.out, args.report,
+               args.rejected_out or None)
     failed = ", ".join(f"{k} {v}" for k, v in r["rejections"].items() if v) or "none"
     print(f"expand {r['task']}: {r['accepted']}/{r['generated']} generated episodes accepted "
           f"({r['infeasible_plans']} plans infeasible); rejected: {failed}; {r['expanded_total']}/"
@@ -34,4 +39,4 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_cli(main, "expand")

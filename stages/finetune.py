@@ -20,6 +20,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from wc.cli import run_cli
 from wc.config import ParamsError, add_params_arguments, load_section, params_hash, read_params
 from wc.policy.comparison import FLAG, WARNING, expanded_equals_source
 from wc.policy.finetune import finetune
@@ -83,4 +84,4 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_cli(main, "finetune")

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 
+from wc.cli import run_cli
 from wc.policy.hub import PushError, push_dataset
 
 
@@ -27,4 +28,4 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_cli(main, "push")

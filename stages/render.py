@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 
+from wc.cli import run_cli
 from wc.config import add_params_arguments, read_params
 from wc.render.stage import render
 
@@ -36,4 +37,4 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_cli(main, "render")

@@ -22,6 +22,7 @@ from wc.agent.lift_plot import write_lift_curves
 from wc.agent.memory import FailureMemory
 from wc.agent.parallel import TaskResult, init_worker, run_task
 from wc.agent.runner import AgentConfig, simulator_store
+from wc.cli import run_cli
 from wc.config import add_params_arguments, load_section, params_hash, read_params
 from wc.reports import environment_info, write_json_atomic
 from wc.scene.config import SceneConfig
@@ -180,4 +181,4 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_cli(main, "simulate")

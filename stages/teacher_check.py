@@ -3,7 +3,8 @@
     python -m stages.teacher_check [--params params.yaml] [--store data/expanded/trajectories.zarr] [--limit N]
 """
 
+from wc.cli import run_cli
 from wc.expand.teacher import main
 
 if __name__ == "__main__":
-    main()
+    run_cli(main, "teacher_check")

@@ -19,6 +19,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from wc.cli import run_cli
 from wc.config import add_params_arguments, load_section, params_hash, read_params
 from wc.model.config import ModelConfig
 from wc.reports import environment_info, write_json_atomic
@@ -76,4 +77,4 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_cli(main, "train")

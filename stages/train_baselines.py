@@ -16,6 +16,7 @@ from typing import Any
 from wc.baselines import BASELINES
 from wc.baselines.config import BaselinesConfig
 from wc.baselines.train import train_baseline
+from wc.cli import run_cli
 from wc.config import ParamsError, add_params_arguments, load_section, params_hash, read_params
 from wc.reports import environment_info, write_json_atomic
 from wc.train.config import TrainConfig
@@ -60,4 +61,4 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_cli(main, "train_baselines")

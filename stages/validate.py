@@ -10,8 +10,9 @@ from __future__ import annotations
 
 import argparse
 
+from wc.cli import run_cli
 from wc.config import add_params_arguments, read_params
-from wc.validate.stage import validate
+from wc.validate.stage import NoAcceptedEpisodesError, validate
 
 __all__ = ["main", "validate"]
 
@@ -31,4 +32,4 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_cli(main, "validate", (NoAcceptedEpisodesError,))

@@ -185,11 +185,17 @@ def test_rejected_episodes_are_counted_per_check_and_not_written(tmp_path, param
     p = copy.deepcopy(params)
     p["validate"]["max_speed_m_s"] = 1e-4  # every moving rollout blows up
     p["expand"].update(max_attempts=3)
-    r = expand(p, model_dir, store_path, tmp_path / "e.zarr", tmp_path / "e.json")
+    r = expand(p, model_dir, store_path, tmp_path / "e.zarr", tmp_path / "e.json", tmp_path / "rejected.zarr")
     assert r["accepted"] == 0 and r["generated"] == 3 - r["infeasible_plans"] > 0
     assert r["rejections"]["blow_up"] == r["generated"] and not r["target_reached"]
     assert {e["reason"] for e in r["rejected_episodes"]} == {"blow_up"}
     assert TrajectoryStore(tmp_path / "e.zarr").episode_ids == []
+    kept = TrajectoryStore(tmp_path / "rejected.zarr")  # the rejected plans, for the teacher check's recall
+    assert len(kept.episode_ids) == r["generated"] and r["rejected_out"] == str(tmp_path / "rejected.zarr")
+    for eid, logged in zip(kept.episode_ids, r["rejected_episodes"]):
+        attrs = kept.episode_attrs(eid)
+        assert not attrs["accepted"] and attrs["first_failure"] == "blow_up" and attrs["seed"] == logged["seed"]
+        assert attrs["source"] == "worldcontact" and len(kept.read_episode(eid, ("x",))["x"]) == logged["frames"]
     p["validate"]["max_speed_m_s"] = 1e3
     p["expand"].update(task_check=True, max_attempts=2)  # the tiny model lifts nothing
     r = expand(p, model_dir, store_path, tmp_path / "t.zarr", tmp_path / "t.json")
@@ -206,6 +212,8 @@ def test_clear_errors(tmp_path, params, store_path, model_dir):
         expand(params, model_dir, other, tmp_path / "o.zarr", tmp_path / "r.json")
     with pytest.raises(ValueError, match="overwrite"):
         expand(params, model_dir, store_path, store_path, tmp_path / "r.json")
+    with pytest.raises(ValueError, match="overwrite"):
+        expand(params, model_dir, store_path, tmp_path / "o.zarr", tmp_path / "r.json", tmp_path / "o.zarr")
     assert not (tmp_path / "o.zarr").exists() and not (tmp_path / "r.json").exists()
     p = copy.deepcopy(params)
     p["expand"]["batch_size"] = 0

@@ -1,4 +1,4 @@
-"""Stage reports: JSON written atomically (temporary sibling, then rename)."""
+"""Stage reports: JSON, CSV and figures written atomically (temporary sibling, then rename; see wc.atomic)."""
 
 from __future__ import annotations
 
@@ -12,18 +12,13 @@ from pathlib import Path
 from collections.abc import Iterable
 from typing import Any
 
+from wc.atomic import write_atomic
+
 
 def write_json_atomic(path: str | Path, data: dict[str, Any]) -> Path:
     """Write `data` as indented JSON at `path`; a reader never sees a half-written file."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    try:
-        tmp.write_text(json.dumps(data, indent=2, sort_keys=True, default=float) + "\n")
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-    return path
+    text = json.dumps(data, indent=2, sort_keys=True, default=float) + "\n"
+    return write_atomic(path, lambda tmp: tmp.write_text(text))
 
 
 def environment_info(device: str) -> dict[str, str]:
@@ -46,34 +41,24 @@ def environment_info(device: str) -> dict[str, str]:
 
 def write_csv_atomic(path: str | Path, header: list[str], rows: Iterable[Iterable[Any]]) -> Path:
     """Write a CSV table at `path` atomically."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    try:
+
+    def write(tmp: Path) -> None:
         with tmp.open("w", newline="") as f:
             writer = csv.writer(f)
             writer.writerow(header)
             writer.writerows(rows)
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-    return path
+
+    return write_atomic(path, write)
 
 
 def save_figure_atomic(fig: Any, path: str | Path) -> Path:
     """Save a matplotlib figure at `path` atomically and close it."""
     import matplotlib.pyplot as plt
 
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}{path.suffix}")
     try:
-        fig.savefig(tmp)
-        os.replace(tmp, path)
+        return write_atomic(path, fig.savefig, keep_suffix=True)
     finally:
         plt.close(fig)
-        tmp.unlink(missing_ok=True)
-    return path
 
 
 def pyplot() -> Any:

@@ -18,6 +18,7 @@ from typing import Any
 import torch
 from safetensors.torch import load_file, save_file
 
+from wc.atomic import write_atomic
 from wc.baselines.adaptigraph import AdaptiGraph
 from wc.baselines.base import ParticleDynamics
 from wc.baselines.config import BaselineParams
@@ -37,23 +38,14 @@ def build_baseline(name: str, params: BaselineParams) -> ParticleDynamics:
     return BASELINES[name](params)
 
 
-def _atomic(path: Path, write) -> None:  # noqa: ANN001 - write(tmp_path)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-
-
 def save_baseline(model: ParticleDynamics, directory: str | os.PathLike[str], meta: dict[str, Any]) -> Path:
     """Write `directory`/model.safetensors and model.json (each atomically); returns the directory."""
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     state = {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
-    _atomic(directory / WEIGHTS, lambda p: save_file(state, str(p)))
+    write_atomic(directory / WEIGHTS, lambda p: save_file(state, str(p)))
     config = {"name": model.name, "params": dataclasses.asdict(model.params), **meta}
-    _atomic(directory / CONFIG, lambda p: p.write_text(json.dumps(config, indent=2, default=float)))
+    write_atomic(directory / CONFIG, lambda p: p.write_text(json.dumps(config, indent=2, default=float)))
     return directory
 
 

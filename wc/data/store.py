@@ -47,6 +47,8 @@ import numpy as np
 import zarr
 from zarr.codecs import ZstdCodec
 
+from wc.atomic import remove_stale_temporaries
+
 if TYPE_CHECKING:
     from wc.scene.scene import Scene
 
@@ -181,7 +183,8 @@ class TrajectoryWriter:
 
     Use as ``with TrajectoryWriter(path, ...) as w:``. Data goes to ``<path>.tmp-<pid>-<hex>``
     and is renamed to `path` on a clean exit (an existing store at `path` is replaced); on an
-    exception the temporary directory is removed. Call `add_object` for every name in
+    exception the temporary directory is removed (one a killed writer left is removed when the next one
+    starts: wc.atomic). Call `add_object` for every name in
     `object_order` before the first `add_episode`.
     """
 
@@ -232,6 +235,7 @@ class TrajectoryWriter:
     # -- context management -------------------------------------------------------------
     def __enter__(self) -> TrajectoryWriter:
         self._check_target()
+        remove_stale_temporaries(self.path)
         parent = self.path.parent
         tmp = parent / f"{self.path.name}.tmp-{os.getpid()}-{secrets.token_hex(4)}"
         try:

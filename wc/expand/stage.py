@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import time
+from contextlib import nullcontext
 from pathlib import Path
 from typing import Any
 
@@ -80,31 +81,37 @@ def _copy_scene(src: TrajectoryStore, writer: TrajectoryWriter) -> None:
         writer.add_prescribed(p.name, p.local_points, p.local_normals, p.tag, p.link)
 
 
-def _episode_attrs(planned: PlannedEpisode, source: SourceEpisode) -> dict[str, Any]:
+def _episode_attrs(planned: PlannedEpisode, source: SourceEpisode, failure: str | None = None) -> dict[str, Any]:
     s = planned.spec
     return {"task": s.task, "seed": s.seed, "cell": s.cell, "speed": s.speed, "amplitude": s.amplitude,
-            "split": "train", "accepted": True, "first_failure": None, "source": "worldcontact",
+            "split": "train", "accepted": failure is None, "first_failure": failure, "source": "worldcontact",
             "parent": planned.parent, "yaw_deg": planned.yaw_deg, "shift_m": list(planned.shift_m), **source.layout}
 
 
 def expand(params: dict[str, Any], model_dir: str | Path = "models/worldcontact",
            store: str | Path = "data/source/trajectories.zarr", out: str | Path = "data/expanded/trajectories.zarr",
-           report: str | Path = "reports/expand.json") -> dict[str, Any]:
+           report: str | Path = "reports/expand.json",
+           rejected_out: str | Path | None = None) -> dict[str, Any]:
     """Generate and check episodes until the target is met or the attempts run out; write the accepted ones
-    to `out` (atomically; possibly none) and the report to `report`. Returns the report."""
+    to `out` and the rejected ones (accepted false, first_failure their check) to `rejected_out` (None: not
+    kept), each atomically and possibly empty, and the report to `report`. Returns the report. The rejected
+    store is what lets the teacher check measure recall as well as precision."""
     cfg = load_section(params, "expand", ExpandConfig)
     scene_cfg = load_section(params, "scene", SceneConfig)
     validate_cfg = load_section(params, "validate", ValidateConfig)
     train_cfg = load_section(params, "train", TrainConfig)
     store, out, model_dir = Path(store), Path(out), Path(model_dir)
+    rejected_out = Path(rejected_out) if rejected_out is not None else None
     if not store.exists():
         raise FileNotFoundError(f"source trajectory store {store} not found: run the validate stage first "
                                 "(`dvc repro validate`)")
     if not (model_dir / CHECKPOINT).is_file():
         raise FileNotFoundError(f"world model checkpoint {model_dir / CHECKPOINT} not found: run the train stage "
                                 "first (`dvc repro train`)")
-    if out.resolve() == store.resolve():
-        raise ValueError(f"expand would overwrite its input {store}: choose another output path")
+    if out.resolve() == store.resolve() or (rejected_out is not None and rejected_out.resolve() in (store.resolve(),
+                                                                                                   out.resolve())):
+        raise ValueError(f"expand would overwrite a store: its outputs {out} and {rejected_out} must differ from "
+                         f"each other and from its input {store}")
     started = time.perf_counter()
     task = get_task(cfg.task, params)
     src = TrajectoryStore(store)
@@ -129,12 +136,19 @@ def expand(params: dict[str, Any], model_dir: str | Path = "models/worldcontact"
     infeasible: list[dict[str, Any]] = []
     attempts = generated = accepted = frames = 0
     rollout_s = 0.0
-    with TrajectoryWriter(out, dt=dt, substeps=int(src.attrs["substeps"]), units=src.attrs["units"],
-                          params_hash=phash, created_by="stages.expand", object_order=src.object_names,
-                          link_names=src.link_names, env_names=src.env_names,
-                          chunk_frames=src.chunk_frames(sources[0].eid)) as writer, \
+    def writer_to(path: Path | None) -> TrajectoryWriter | nullcontext[None]:
+        if path is None:
+            return nullcontext()
+        return TrajectoryWriter(path, dt=dt, substeps=int(src.attrs["substeps"]), units=src.attrs["units"],
+                                params_hash=phash, created_by="stages.expand", object_order=src.object_names,
+                                link_names=src.link_names, env_names=src.env_names,
+                                chunk_frames=src.chunk_frames(sources[0].eid))
+
+    with writer_to(out) as writer, writer_to(rejected_out) as rejected_writer, \
             tqdm(total=wanted, desc=f"expand {task.name}", unit="trajectory") as bar:
-        _copy_scene(src, writer)
+        for w in (writer, rejected_writer):
+            if w is not None:
+                _copy_scene(src, w)
         while accepted < wanted and attempts < cfg.max_attempts:
             planned: list[tuple[PlannedEpisode, SourceEpisode]] = []
             for i in range(attempts, attempts + min(cfg.batch_size, wanted - accepted, cfg.max_attempts - attempts)):
@@ -161,6 +175,9 @@ def expand(params: dict[str, Any], model_dir: str | Path = "models/worldcontact"
                     rejected.append({"seed": p.spec.seed, "cell": p.spec.cell, "parent": p.parent,
                                      "reason": failure[0], "frame": failure[1], "frames": len(r.x),
                                      **_failure_detail(scene, r, validate_cfg, dt, *failure)})
+                    if rejected_writer is not None:
+                        rejected_writer.add_episode(r.x, r.v, r.action, r.link_poses, r.env_poses,
+                                                    **_episode_attrs(p, source, failure[0]))
                     continue
                 writer.add_episode(r.x, r.v, r.action, r.link_poses, r.env_poses, **_episode_attrs(p, source))
                 accepted += 1
@@ -197,6 +214,7 @@ def expand(params: dict[str, Any], model_dir: str | Path = "models/worldcontact"
         "model": checkpoint,
         "store": str(store),
         "out": str(out),
+        "rejected_out": str(rejected_out) if rejected_out is not None else None,
         "params_hash": phash,
         "environment": environment_info(str(device)),
     }

@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
+from wc.atomic import remove_stale_temporaries
 from wc.data.store import ACTION_DIM, TrajectoryStore
 from wc.policy.dataset_config import DatasetConfig
 from wc.policy.video_roundtrip import video_encoder
@@ -169,6 +170,7 @@ def write_lerobot_dataset(out: str | Path, repo_id: str, episodes: Sequence[Epis
     height, width = _image_size(episodes)
     started = time.perf_counter()
     out.parent.mkdir(parents=True, exist_ok=True)
+    remove_stale_temporaries(out)
     tmp = out.with_name(f".{out.name}.tmp-{os.getpid()}-{secrets.token_hex(4)}")
     try:
         ds = create_dataset(tmp, repo_id, fps, height, width, cfg)

@@ -34,6 +34,7 @@ from lerobot.processor import PolicyProcessorPipeline
 from lerobot.utils.constants import ACTION, CHECKPOINTS_DIR, OBS_IMAGES, OBS_STATE
 from lerobot.utils.feature_utils import dataset_to_policy_features
 
+from wc.atomic import remove_stale_temporaries
 from wc.policy.policy_config import PolicyConfig
 from wc.policy.pretrained import PretrainedFilesError, check_weights_loaded, checkpoint_weights, tokenizer_dir
 from wc.policy.processors import load_processors
@@ -126,6 +127,7 @@ def finetune(root: str | Path, out: str | Path, cfg: PolicyConfig, meta: dict[st
                                    "pretrained/pi05_base")
     config = policy_config(cfg, ds_meta)
     _check_replaceable(out)  # before training, not after
+    remove_stale_temporaries(out)
     scratch = out.with_name(f".{out.name}.tmp-{os.getpid()}-{secrets.token_hex(4)}")
     out.parent.mkdir(parents=True, exist_ok=True)
     scratch.mkdir()

@@ -17,6 +17,7 @@ from typing import Any
 
 from tqdm import tqdm
 
+from wc.atomic import remove_stale_temporaries
 from wc.config import load_section, params_hash
 from wc.policy.comparison import FLAG, expanded_equals_source, trained_episodes
 from wc.policy.finetune import SUMMARY_FILE, load_policy
@@ -66,6 +67,7 @@ def run(params: dict[str, Any], models_root: str | Path = "models/policy", repor
     seeds = [cfg.seed + i for i in range(cfg.trials)]
     videos_dir = Path(videos_dir)
     videos_dir.parent.mkdir(parents=True, exist_ok=True)
+    remove_stale_temporaries(videos_dir)
     tmp_videos = videos_dir.with_name(f".{videos_dir.name}.tmp-{os.getpid()}-{secrets.token_hex(4)}")
     tmp_videos.mkdir()
     policies: dict[str, dict[str, Any]] = {}

@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
-import os
 from collections.abc import Sequence
 from pathlib import Path
 
 import cv2
 import numpy as np
+
+from wc.atomic import write_atomic
 
 
 def write_mp4(path: str | Path, frames: Sequence[np.ndarray], fps: float) -> Path:
@@ -15,9 +16,12 @@ def write_mp4(path: str | Path, frames: Sequence[np.ndarray], fps: float) -> Pat
     path = Path(path)
     if not len(frames):
         raise ValueError(f"{path}: no frames to write")
+    return write_atomic(path, lambda tmp: _encode(tmp, frames, fps, path), keep_suffix=True)
+
+
+def _encode(tmp: Path, frames: Sequence[np.ndarray], fps: float, path: Path) -> None:
+    """Encode `frames` into the mp4 file `tmp` (errors name the target `path`)."""
     height, width = frames[0].shape[:2]
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.tmp-{os.getpid()}{path.suffix}")
     writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), float(fps), (width, height))
     try:
         if not writer.isOpened():
@@ -27,9 +31,5 @@ def write_mp4(path: str | Path, frames: Sequence[np.ndarray], fps: float) -> Pat
                 raise ValueError(f"{path}: frames must all be ({height}, {width}, 3) uint8, got {frame.shape} "
                                  f"{frame.dtype}")
             writer.write(cv2.cvtColor(frame, cv2.COLOR_RGB2BGR))
-        writer.release()
-        os.replace(tmp, path)
     finally:
         writer.release()
-        tmp.unlink(missing_ok=True)
-    return path

@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 import zarr
 
+from wc.atomic import remove_stale_temporaries
 from wc.reports import replace_dir
 
 RENDERED_SCHEMA = "worldcontact-rendered/1"
@@ -49,6 +50,7 @@ class RenderedWriter:
         if self.path.exists() and not (self.path / "zarr.json").is_file():
             raise FileExistsError(f"{self.path} exists and is not a zarr store; refusing to replace it")
         self.path.parent.mkdir(parents=True, exist_ok=True)
+        remove_stale_temporaries(self.path)
         self._tmp = self.path.with_name(f"{self.path.name}.tmp-{os.getpid()}-{secrets.token_hex(4)}")
         self._root = zarr.open_group(self._tmp, mode="w", zarr_format=3)
         self._root.attrs.update(self._attrs)

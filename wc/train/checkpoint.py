@@ -10,24 +10,23 @@ from typing import Any
 import torch
 from safetensors.torch import load_file, save_file
 
+from wc.atomic import write_atomic
 from wc.model.config import ModelConfig
 from wc.model.worldcontact import WorldContact
-
-
-def _atomic(path: Path, write) -> None:  # noqa: ANN001 - write(tmp_path)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    write(tmp)
-    os.replace(tmp, path)
 
 
 def save_weights(model: WorldContact, path: Path, meta: dict[str, Any]) -> None:
     """Write `path` (.safetensors) and its sibling `<stem>.json` (model config, scales, `meta`)."""
     state = {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
-    _atomic(path, lambda p: save_file(state, str(p)))
+    write_atomic(path, lambda p: save_file(state, str(p)))
+    config = {"model": model.config.to_dict(), "scales": model_scales(model), **meta}
+    write_atomic(path.with_suffix(".json"), lambda p: p.write_text(json.dumps(config, indent=2)))
+
+
+def model_scales(model: WorldContact) -> dict[str, float | list[float]]:
+    """The model's data scales as WorldContact's keyword arguments (one value, or one per axis)."""
     v, dx, dv = (float(row[0]) if bool((row == row[0]).all()) else [float(a) for a in row] for row in model.scales)
-    config = {"model": model.config.to_dict(), "scales": {"velocity_m_s": v, "delta_x_m": dx, "delta_v_m_s": dv},
-              **meta}
-    _atomic(path.with_suffix(".json"), lambda p: p.write_text(json.dumps(config, indent=2)))
+    return {"velocity_m_s": v, "delta_x_m": dx, "delta_v_m_s": dv}
 
 
 def load_model(path: str | os.PathLike[str], device: str | torch.device = "cpu") -> tuple[WorldContact, dict[str, Any]]:
@@ -56,7 +55,7 @@ def load_model(path: str | os.PathLike[str], device: str | torch.device = "cpu")
 
 def save_state(path: Path, state: dict[str, Any]) -> None:
     """Optimizer, scheduler, step, RNG and history for resuming (torch.save, atomic)."""
-    _atomic(path, lambda p: torch.save(state, p))
+    write_atomic(path, lambda p: torch.save(state, p))
 
 
 def load_state(path: Path) -> dict[str, Any]:

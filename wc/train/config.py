@@ -70,6 +70,7 @@ class TrainConfig:
     neighbor_headroom: float = 1.25
     max_minutes: float = 0.0  # stop cleanly with a complete checkpoint after this wall time (0 = no limit); --resume goes on
     device: str = "cpu"  # cpu | cuda | cuda:k (torchrun: each process takes cuda:LOCAL_RANK)
+    init_from: str = ""  # "" = from scratch; else fine-tune a pretrained checkpoint: a path or hf://owner/repo/file
     seed: int = 0
 
     def validate(self) -> None:

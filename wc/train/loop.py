@@ -31,7 +31,7 @@ from wc.model.rollout import Step, rollout
 from wc.model.worldcontact import WorldContact
 from wc.train import distributed
 from wc.train.capacity import data_capacities
-from wc.train.checkpoint import load_state, restore_rng_states, rng_states, save_state, save_weights
+from wc.train.checkpoint import load_state, model_scales, restore_rng_states, rng_states, save_state, save_weights
 from wc.train.config import TrainConfig
 from wc.train.data import (LayoutBatchSampler, LayoutKey, Phase, Scales, Window, WindowDataset, data_scales,
                            phases_of, split_blocks, windows_of)
@@ -39,6 +39,7 @@ from wc.train.events import window_weights
 from wc.train.evaluation import rollout_error, segment_loss, validation_losses
 from wc.train.selection import selection_score
 from wc.train.noise import noisy_state
+from wc.train.pretrained import pretrained_model
 from wc.train.resident import ResidentWindows
 from wc.train.schedule import learning_rate
 from wc.train.static_step import StaticTrainer, StepSettings, make_optimizer, set_learning_rate
@@ -160,7 +161,10 @@ def train(store_path: str | Path, out_dir: str | Path, model_cfg: ModelConfig, c
     store = TrajectoryStore(store_path)
     data = prepare_data(store, cfg)
     out_dir, work = Path(out_dir), Path(f"{out_dir}.partial")
-    model = WorldContact(model_cfg, **asdict(data.scales)).to(procs.device)
+    if cfg.init_from:  # fine-tune: the network and its output scales are the checkpoint's
+        model = pretrained_model(cfg.init_from, model_cfg)[0].to(procs.device)
+    else:
+        model = WorldContact(model_cfg, **asdict(data.scales)).to(procs.device)
     layout_for = _layouts(store, model_cfg, procs.device)
     optimizer = make_optimizer(model, cfg, procs.device)
     sampler = LayoutBatchSampler(data.train_windows, cfg.batch_size, cfg.seed, procs.rank, data.window_weights)
@@ -223,7 +227,7 @@ def train(store_path: str | Path, out_dir: str | Path, model_cfg: ModelConfig, c
 
     total = cfg.base.steps + cfg.projection.steps
     step_times: list[float] = []
-    meta = {**(meta or {}), "dt": store.dt, "validation": data.validation}
+    meta = {**(meta or {}), "dt": store.dt, "validation": data.validation, "init_from": cfg.init_from}
     bar = tqdm(total=total, initial=step, desc="train", disable=not procs.main)
     stopped = False
     stage = "base" if step < cfg.base.steps else "projection"
@@ -323,7 +327,7 @@ def _finish(model: WorldContact, work: Path, out_dir: Path, cfg: TrainConfig, da
         "steps": {"base": cfg.base.steps, "projection": cfg.projection.steps},
         "train_windows": len(data.train_windows), "val_windows": len(data.val_windows),
         "event_window_share": data.event_share, "event_oversample": cfg.event_oversample,
-        "scales": asdict(data.scales), "history": history,
+        "scales": model_scales(model), "init_from": cfg.init_from, "history": history,
         "selected_by": cfg.select_by, "best_score": best[final],
         "selected": next((h for h in history if h["stage"] == final and h["score"] == best[final]), {}),
         "best_val_loss": min((h["val_loss"] for h in history if h["stage"] == final), default=float("nan")),
