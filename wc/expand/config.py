@@ -24,6 +24,8 @@ class ExpandConfig:
     projection: str = "joint"
     projection_iterations: int = 50  # joint: loop passes at most (it stops once edges and contacts hold)
     projection_edge_ratio: Range = (0.9, 1.1)  # joint: edge length / rest length kept within these
+    pad_carry: bool = False  # joint: cloth held between closed finger pads moves with them (wc.expand.carry)
+    pad_carry_radius_m: float = 0.004  # ... a cloth vertex this close to both pads of one arm is held
     device: str = "cpu"  # cpu | cuda | cuda:k | auto
     seed: int = 0
 
@@ -39,6 +41,10 @@ class ExpandConfig:
                 raise ValueError(f"{name} must be (low, high) with low <= high, got {(low, high)}")
         if self.projection not in ("joint", "contact", "none"):
             raise ValueError(f"projection must be joint, contact or none, got {self.projection!r}")
+        if not self.pad_carry_radius_m > 0:
+            raise ValueError(f"pad_carry_radius_m must be positive, got {self.pad_carry_radius_m}")
+        if self.pad_carry and self.projection != "joint":
+            raise ValueError(f"pad_carry needs projection 'joint', got {self.projection!r}")
         if self.projection_iterations < 1:
             raise ValueError(f"projection_iterations must be >= 1, got {self.projection_iterations}")
         lo, hi = self.projection_edge_ratio

@@ -22,6 +22,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from wc.expand.carry import PadCarry
 from wc.expand.contact import Bodies, ContactProjection
 from wc.validate.self_intersection import unique_edges
 
@@ -172,20 +173,27 @@ class JointStepProjection:
     """`ConstraintProjection` as a predictor's per-step projection (the `ContactProjection.project` signature),
     keeping the largest strain and penetration it saw before and after, and the steps that did not converge."""
 
-    def __init__(self, scene, edge_ratio: tuple[float, float], iterations: int) -> None:  # noqa: ANN001
+    def __init__(self, scene, edge_ratio: tuple[float, float], iterations: int,  # noqa: ANN001
+                 carry: PadCarry | None = None) -> None:
+        """carry: cloth held between closed pads follows them and stays pinned (wc.expand.carry); None: not."""
         self.constraints = ConstraintProjection(scene, edge_ratio, iterations)
-        self.scene = scene
+        self.scene, self.carry = scene, carry
         self.stats = {"steps": 0, "not_converged": 0, "max_strain_before": 0.0, "max_strain_after": 0.0,
-                      "max_depth_before_m": 0.0, "max_depth_after_m": 0.0}
+                      "max_depth_before_m": 0.0, "max_depth_after_m": 0.0, "carried_vertex_steps": 0}
 
     def boxes(self, link_poses: np.ndarray, like: Tensor) -> Bodies:
         return self.constraints.contacts.boxes(link_poses, like)
 
     def project(self, x_prev: Tensor, x: Tensor, v: Tensor, dt: float, boxes: Bodies, frame: int,
-                link_poses: np.ndarray) -> tuple[Tensor, Tensor]:
+                link_poses: np.ndarray, prev_link_poses: np.ndarray | None = None) -> tuple[Tensor, Tensor]:
+        """As `ContactProjection.project`; prev_link_poses (B, L, 7), the poses at x_prev, for the pad carry."""
+        pinned = None
+        if self.carry is not None and prev_link_poses is not None:
+            x, v, pinned = self.carry.apply(x_prev, x, v, dt, prev_link_poses, link_poses)
+            self.stats["carried_vertex_steps"] += int(pinned.sum())
         bodies = [Bodies(boxes.pos[:, frame], boxes.rot[:, frame], boxes.normals, boxes.offsets),
                   *self.constraints.contacts.rigid(x, link_poses)]
-        x_out, v_out, r = self.constraints.project(x_prev, x, v, dt, bodies)
+        x_out, v_out, r = self.constraints.project(x_prev, x, v, dt, bodies, pinned)
         finite = np.isfinite(r.strain_before)
         s = self.stats
         s["steps"] += 1

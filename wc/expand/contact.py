@@ -144,9 +144,10 @@ class ContactProjection:
         return out
 
     def project(self, x_prev: Tensor, x: Tensor, v: Tensor, dt: float, boxes: Bodies, frame: int,
-                link_poses: np.ndarray) -> tuple[Tensor, Tensor]:
+                link_poses: np.ndarray, prev_link_poses: np.ndarray | None = None) -> tuple[Tensor, Tensor]:
         """Projected (x, v) (B, N, 3) of a predicted step x, v from x_prev (B, N, 3); `frame` indexes the boxes
-        of the step, link_poses (B, L, 7) are its poses (for held objects)."""
+        of the step, link_poses (B, L, 7) are its poses (for held objects); prev_link_poses (those at x_prev) are
+        not used by the push alone."""
         rows = self.rows.to(x.device)
         if len(rows) == 0:
             return x, v
@@ -196,7 +197,8 @@ class ContactProjectedPredictor:
         x, v = x0, v0
         for t in range(steps):
             px, pv = self.inner.rollout(layout, x, v, poses[:, t:t + 2], dt)
-            x, v = self.projection.project(x, px[:, 0], pv[:, 0], dt, boxes, t + 1, link_poses[:, t + 1])
+            x, v = self.projection.project(x, px[:, 0], pv[:, 0], dt, boxes, t + 1, link_poses[:, t + 1],
+                                           link_poses[:, t])
             xs[:, t], vs[:, t] = x, v
             if not (torch.isfinite(x).all() and torch.isfinite(v).all()):
                 break

@@ -30,6 +30,7 @@ from wc.config import load_section, params_hash
 from wc.data.store import TrajectoryStore, TrajectoryWriter
 from wc.devices import resolve_device
 from wc.eval.predictors import CHECKPOINT, WorldContactPredictor
+from wc.expand.carry import PadCarry
 from wc.expand.config import ExpandConfig
 from wc.expand.constraints import JointStepProjection
 from wc.expand.contact import ContactProjectedPredictor
@@ -120,7 +121,8 @@ def expand(params: dict[str, Any], model_dir: str | Path = "models/worldcontact"
     torch.manual_seed(cfg.seed)
     model = WorldContactPredictor.from_dir(model_dir, train_cfg, device)
     layout = scene_layout(src, list(scene.objects), list(scene.link_names), model.tag_scale).to(device)
-    projection = (JointStepProjection(scene, cfg.projection_edge_ratio, cfg.projection_iterations)
+    carry = PadCarry(scene, cfg.pad_carry_radius_m) if cfg.pad_carry else None
+    projection = (JointStepProjection(scene, cfg.projection_edge_ratio, cfg.projection_iterations, carry)
                   if cfg.projection == "joint" else None)
     predictor = model if cfg.projection == "none" else ContactProjectedPredictor(model, scene, projection)
     dt = src.dt
@@ -189,6 +191,7 @@ def expand(params: dict[str, Any], model_dir: str | Path = "models/worldcontact"
         "source_episodes": len(sources),
         "sources": [{"episode": s.eid, "cell": s.cell, "presettle_state": s.presettle} for s in sources],
         "projection": cfg.projection,
+        "pad_carry": cfg.pad_carry,
         "projection_stats": projection.stats if projection is not None else None,
         "target_trajectories": cfg.target_trajectories,
         "wanted_generated": wanted,
