@@ -141,3 +141,43 @@ def test_sim_rejects_a_negative_self_contact_filter():
     params = read_params(ROOT / "params.yaml", ["sim.self_contact_filter_rings=-1"])
     with pytest.raises(ParamsError, match="self_contact_filter_rings"):
         load_section(params, "sim", SimConfig)
+
+
+def test_an_override_file_extends_its_base(tmp_path):
+    """`extends` loads the base first; mappings merge key by key, `!replace` replaces one whole, lists replace."""
+    (tmp_path / "base.yaml").write_text(yaml.safe_dump(
+        {"sim": {"dt_s": 0.04, "worlds": 1, "bag": {"ke": 1.0, "kd": 2.0}}, "cases": {"a": {"x": 1}, "b": {"y": 2}},
+         "tasks": [1, 2]}))
+    (tmp_path / "sub").mkdir()
+    (tmp_path / "sub" / "gpu.yaml").write_text("extends: ../base.yaml\nsim: {worlds: 8, bag: {kd: 3.0}}\n"
+                                               "cases: !replace {c: {z: 3}}\ntasks: [3]\n")
+    params = read_params(tmp_path / "sub" / "gpu.yaml", ["sim.dt_s=0.02"])
+    assert params["sim"] == {"dt_s": 0.02, "worlds": 8, "bag": {"ke": 1.0, "kd": 3.0}}
+    assert params["cases"] == {"c": {"z": 3}} and params["tasks"] == [3]
+    (tmp_path / "loop.yaml").write_text("extends: loop.yaml\n")
+    with pytest.raises(ParamsError, match="extend each other in a cycle"):
+        read_params(tmp_path / "loop.yaml")
+    (tmp_path / "orphan.yaml").write_text("extends: nowhere.yaml\n")
+    with pytest.raises(ParamsError, match=r"params file not found: .*nowhere.yaml \(extended by"):
+        read_params(tmp_path / "orphan.yaml")
+
+
+def test_the_gpu_params_list_only_what_differs_from_the_defaults():
+    """params/gpu.yaml is an override of params.yaml: every value it sets differs from the default it overrides."""
+    from wc.config import _ParamsLoader
+
+    override = yaml.load((ROOT / "params/gpu.yaml").read_text(), Loader=_ParamsLoader)
+    assert override.pop("extends") == "../params.yaml"
+    base = read_params(ROOT / "params.yaml")
+
+    def same(node: dict, at: dict | None, path: str) -> list[str]:
+        found = []
+        for key, value in node.items():
+            there = at.get(key) if isinstance(at, dict) else None
+            if isinstance(value, dict) and type(value) is dict and isinstance(there, dict):
+                found += same(value, there, f"{path}{key}.")
+            elif value == there:
+                found.append(f"{path}{key}")
+        return found
+
+    assert same(override, base, "") == []

@@ -31,17 +31,56 @@ def add_params_arguments(parser: argparse.ArgumentParser) -> None:
                         help="override one param, e.g. --set sim.iterations=5 (repeatable)")
 
 
-def read_params(path: str | Path, overrides: list[str] | None = None) -> dict[str, Any]:
-    """Load a YAML params file and apply `key.sub=value` overrides (values parsed as YAML)."""
-    path = Path(path)
+class Replace(dict):
+    """A mapping tagged `!replace` in an override file: it replaces the base file's mapping instead of merging."""
+
+
+class _ParamsLoader(yaml.SafeLoader):
+    """YAML's safe loader plus the `!replace` tag."""
+
+
+_ParamsLoader.add_constructor("!replace", lambda loader, node: Replace(loader.construct_mapping(node, deep=True)))
+
+
+def merged(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:
+    """`base` with `override` on top: mappings merge key by key (a `Replace` one replaces), anything else replaces."""
+    out = dict(base)
+    for key, value in override.items():
+        if isinstance(value, dict) and not isinstance(value, Replace) and isinstance(out.get(key), dict):
+            out[key] = merged(out[key], value)
+        else:
+            out[key] = dict(value) if isinstance(value, Replace) else value
+    return out
+
+
+def _load_params_file(path: Path, seen: tuple[Path, ...] = ()) -> dict[str, Any]:
+    """One params file as a dict; a file with `extends: <base>` (relative to it) is loaded on top of that base."""
     if not path.is_file():
-        raise ParamsError(f"params file not found: {path}")
+        raise ParamsError(f"params file not found: {path}" + (f" (extended by {seen[-1]})" if seen else ""))
+    if path.resolve() in seen:
+        raise ParamsError(f"{path}: params files extend each other in a cycle: {' -> '.join(map(str, seen))}")
     try:
-        data = yaml.safe_load(path.read_text())
+        data = yaml.load(path.read_text(), Loader=_ParamsLoader)
     except yaml.YAMLError as err:
         raise ParamsError(f"{path}: not valid YAML: {err}") from err
     if not isinstance(data, dict):
         raise ParamsError(f"{path}: top level must be a mapping, got {type(data).__name__}")
+    base = data.pop("extends", None)
+    if base is None:
+        return data
+    if not isinstance(base, str):
+        raise ParamsError(f"{path}: extends must name one params file, got {base!r}")
+    return merged(_load_params_file(path.parent / base, (*seen, path.resolve())), data)
+
+
+def read_params(path: str | Path, overrides: list[str] | None = None) -> dict[str, Any]:
+    """Load a YAML params file and apply `key.sub=value` overrides (values parsed as YAML).
+
+    A file may start from another: `extends: ../params.yaml` (relative to the file) loads that one first and puts
+    this file's values on top, mappings merged key by key; a mapping tagged `!replace` replaces the base's whole.
+    """
+    path = Path(path)
+    data = _load_params_file(path)
     for item in overrides or []:
         key, sep, raw = item.partition("=")
         if not sep:
