@@ -9,13 +9,12 @@ Episode kinds:
 
 from __future__ import annotations
 
-import copy
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from wc.config import load_section, read_params
+from wc.config import load_section
 from wc.data.store import TrajectoryWriter
 from wc.scene.config import SceneConfig
 from wc.scene.scene import build_scene
@@ -66,13 +65,6 @@ def _episode(scene_cfg: SceneConfig, kind: str, frames: int, rng: np.random.Gene
     arrays = dict(x=x, v=v, action=action, link_poses=link_poses,
                   env_poses=np.repeat(scene.env_poses()[None], frames, axis=0))
     return arrays, attrs
-
-
-def default_params(train: dict[str, Any] | None = None) -> dict[str, Any]:
-    """params.yaml with the `train` section updated by `train` (a tiny schedule for tests)."""
-    params = read_params("params.yaml")
-    params["train"].update(copy.deepcopy(train or {}))
-    return params
 
 
 def write_synthetic_store(path: Path, params: dict[str, Any], episodes: list[tuple[str, str]],

@@ -14,12 +14,12 @@ import pytest
 import torch
 
 from stages.train_baselines import run
-from tests.synthetic_store import write_synthetic_store
+from tests.conftest import load_params
 from wc.baselines import BASELINES, build_baseline, load_baseline, save_baseline
 from wc.baselines.config import BaselineParams
 from wc.baselines.losses import chamfer, emd
 from wc.baselines.sampling import particle_map
-from wc.config import ParamsError, read_params
+from wc.config import ParamsError
 from wc.data.store import TrajectoryStore
 from wc.model.layout import scene_layout
 from wc.train.data import episode_phases, read_phase_window
@@ -39,14 +39,14 @@ WIDE = {"neighbor_radius_m": 0.1, "tool_radius_m": 2.0, "max_step_m": 1.0}
 
 @pytest.fixture(scope="module")
 def params() -> dict[str, Any]:
-    p = read_params("params.yaml")
+    p = load_params()
     p["baselines"] = copy.deepcopy(TINY)
     return p
 
 
 @pytest.fixture(scope="module")
-def store_path(tmp_path_factory, params) -> Path:
-    return write_synthetic_store(tmp_path_factory.mktemp("store") / "s.zarr", params, EPISODES, frames=12)
+def store_path(synthetic_store, params) -> Path:
+    return synthetic_store(params, EPISODES, frames=12)
 
 
 def _window(store_path: Path, episode: str, length: int):
@@ -78,6 +78,7 @@ def test_rollout_gives_every_vertex_and_finite_difference_velocity(store_path, n
         model.rollout(layout, a["x"][:, 0], a["v"][:, 0], a["poses"][:, :1], 0.04)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", list(BASELINES))
 def test_one_training_step_lowers_the_loss_on_a_fixed_batch(store_path, name):
     model = _model(name, **({} if name == "adaptigraph" else WIDE))
@@ -92,6 +93,7 @@ def test_one_training_step_lowers_the_loss_on_a_fixed_batch(store_path, name):
     assert float(after) < float(before.detach())
 
 
+@pytest.mark.slow
 def test_contact_gating_keeps_untouched_objects_still(store_path):
     """RoboCraft without a tool in contact and RoboCook without a tool relation predict no motion."""
     for name in ("robocraft", "robocook"):
@@ -154,6 +156,7 @@ def test_missing_or_corrupt_baseline(tmp_path):
         build_baseline("dpi", BaselineParams(**TINY["models"]["robocook"]))
 
 
+@pytest.mark.slow
 def test_stage_trains_every_baseline_and_reports(store_path, params, tmp_path):
     report = run(params, store_path, tmp_path / "models", tmp_path / "report.json")
     saved = json.loads((tmp_path / "report.json").read_text())

@@ -11,10 +11,9 @@ from pathlib import Path
 
 import pytest
 
+from tests.conftest import ROOT
 from wc.cli import error_line, run_cli
 from wc.config import ParamsError
-
-ROOT = Path(__file__).resolve().parents[1]
 
 
 def _stage(module: str, *args: str, traceback: bool = False) -> subprocess.CompletedProcess:
@@ -33,6 +32,7 @@ def _assert_one_line(done: subprocess.CompletedProcess, stage: str, *words: str)
     assert all(w in lines[0] for w in words), lines[0]
 
 
+@pytest.mark.slow
 def test_validate_missing_input(tmp_path: Path) -> None:
     out = tmp_path / "out.zarr"
     done = _stage("validate", "--raw", str(tmp_path / "absent.zarr"), "--out", str(out), "--report",
@@ -41,12 +41,14 @@ def test_validate_missing_input(tmp_path: Path) -> None:
     assert not out.exists()
 
 
+@pytest.mark.slow
 def test_train_bad_override(tmp_path: Path) -> None:
     done = _stage("train", "--set", "train.base.steps=many", "--store", str(tmp_path / "absent.zarr"), "--out",
                   str(tmp_path / "m"), "--report", str(tmp_path / "r.json"))
     _assert_one_line(done, "train", "train.base.steps", "integer", "'many'")
 
 
+@pytest.mark.slow
 def test_params_file_not_yaml(tmp_path: Path) -> None:
     params = tmp_path / "params.yaml"
     params.write_text("scene: [\n  a\nvalidate: 1\n")
@@ -54,6 +56,7 @@ def test_params_file_not_yaml(tmp_path: Path) -> None:
     _assert_one_line(done, "validate", str(params), "not valid YAML")
 
 
+@pytest.mark.slow
 def test_params_file_missing_and_traceback_on_request(tmp_path: Path) -> None:
     args = ("--params", str(tmp_path / "absent.yaml"), "--store", str(tmp_path / "absent.zarr"))
     _assert_one_line(_stage("train", *args), "train", "params file not found", "absent.yaml")

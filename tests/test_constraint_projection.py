@@ -8,18 +8,16 @@ import numpy as np
 import pytest
 import torch
 
-from wc.config import load_section, read_params
 from wc.expand.constraints import ConstraintProjection, edge_colours
 from wc.expand.contact import Bodies
-from wc.scene.config import SceneConfig
 from wc.scene.scene import build_scene
 
 DT = 0.04
 
 
 @pytest.fixture(scope="module")
-def scene():
-    return build_scene(load_section(read_params("params.yaml"), "scene", SceneConfig), ["bag"])
+def scene(scene_cfg):
+    return build_scene(scene_cfg, ["bag"])
 
 
 def _frame_bodies(projection: ConstraintProjection, scene, like: torch.Tensor) -> list[Bodies]:
@@ -41,6 +39,7 @@ def test_edge_colours_share_no_vertex(scene):
         assert len(np.unique(ends)) == len(ends)
 
 
+@pytest.mark.slow
 def test_stretched_sunken_cloth_ends_within_its_limits_and_out_of_the_table(scene):
     projection = ConstraintProjection(scene, iterations=200)
     rest = torch.as_tensor(scene.objects["bag"].vertices, dtype=torch.float64)

@@ -9,13 +9,13 @@ import numpy as np
 import pytest
 import torch
 
-from tests.synthetic_store import HELD_SPHERE, write_synthetic_store
-from wc.config import load_section, read_params
+from tests.conftest import load_params
+from tests.synthetic_store import HELD_SPHERE
+from wc.config import load_section
 from wc.data.store import TrajectoryStore
 from wc.eval.predictors import ConstantVelocity
 from wc.expand.contact import Bodies, ContactProjectedPredictor, ContactProjection
 from wc.model.layout import scene_layout
-from wc.scene.config import SceneConfig
 from wc.scene.scene import build_scene
 from wc.validate.config import ValidateConfig
 from wc.validate.predicates import (Episode, box_signed_distance, cloth_rows, convex_depth, convex_planes,
@@ -27,12 +27,7 @@ DEVICES = ["cpu", *(["cuda"] if torch.cuda.is_available() else [])]
 
 @pytest.fixture(scope="module")
 def params() -> dict:
-    return read_params("params.yaml")
-
-
-@pytest.fixture(scope="module")
-def scene_cfg(params) -> SceneConfig:
-    return load_section(params, "scene", SceneConfig)
+    return load_params()
 
 
 def _strict(params) -> ValidateConfig:
@@ -145,8 +140,8 @@ def test_projection_clears_held_and_predicted_rigid_objects(params, scene_cfg):
 
 
 @pytest.fixture(scope="module")
-def layout_and_scene(tmp_path_factory, params, scene_cfg):
-    path = write_synthetic_store(tmp_path_factory.mktemp("cp") / "s.zarr", params, [("fall", "train")], frames=3)
+def layout_and_scene(synthetic_store, params, scene_cfg):
+    path = synthetic_store(params, [("fall", "train")], frames=3)
     scene = build_scene(scene_cfg, ["bag"])
     return scene_layout(TrajectoryStore(path), ["bag"], list(scene.link_names), 0.02), scene
 

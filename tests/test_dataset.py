@@ -17,11 +17,12 @@ import pytest
 
 from stages.dataset import build_datasets, main
 from stages.push import main as push_main
-from wc.config import ParamsError, read_params
+from wc.config import ParamsError
 from wc.data.store import TrajectoryStore
 from wc.policy.comparison import FLAG
 from wc.policy.dataset import PROVENANCE_FILE, fps_of, right_arm_state_action, select_episodes
 from wc.render.frames import RenderedStore, RenderedWriter
+from tests.conftest import load_params
 from tests.synthetic_store import write_synthetic_store
 
 T = 12  # frames per episode
@@ -54,7 +55,7 @@ def write_frames(path: Path, store: TrajectoryStore, frames: dict[str, int] | No
 
 @pytest.fixture(scope="module")
 def params() -> dict[str, Any]:
-    p = read_params("params.yaml")
+    p = load_params()
     p["dataset"] = {**p["dataset"], "task": "carry", "splits": ["train", "test"]}  # the val episode stays out
     return p
 
@@ -116,6 +117,7 @@ def test_fps_from_dt() -> None:
         fps_of(0.03)
 
 
+@pytest.mark.slow
 def test_report_counts(built: dict[str, Any], inputs: dict[str, Path]) -> None:
     report = json.loads(built["report_path"].read_text())
     src, exp = TrajectoryStore(inputs["source_trajectories"]), TrajectoryStore(inputs["expanded_trajectories"])
@@ -130,6 +132,7 @@ def test_report_counts(built: dict[str, Any], inputs: dict[str, Path]) -> None:
     assert len(report["params_hash"]) == 16 and report["wall_s"] > 0
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["source", "expanded"])
 def test_loads_in_stock_lerobot(built: dict[str, Any], inputs: dict[str, Path], name: str) -> None:
     ds = _load(built["out"], name)
@@ -164,6 +167,7 @@ def test_loads_in_stock_lerobot(built: dict[str, Any], inputs: dict[str, Path], 
     assert moved == len(provenance)  # the check above would be vacuous on a still arm
 
 
+@pytest.mark.slow
 def test_card_and_atomic_output(built: dict[str, Any]) -> None:
     for name in ("source", "expanded"):
         card = (built["out"] / name / "README.md").read_text()
@@ -182,6 +186,7 @@ def test_missing_expanded_inputs_fail_before_writing(tmp_path: Path, params: dic
     assert not (tmp_path / "lerobot").exists() and not (tmp_path / "r.json").exists()
 
 
+@pytest.mark.slow
 def test_an_expansion_without_generated_episodes_is_flagged_or_refused(tmp_path: Path, params: dict[str, Any],
                                                                       inputs: dict[str, Path]) -> None:
     """Only another task's episodes in the expanded store: the two datasets hold the same episodes. The report says
@@ -201,6 +206,7 @@ def test_an_expansion_without_generated_episodes_is_flagged_or_refused(tmp_path:
     assert report["datasets"]["expanded"]["episodes"] == report["datasets"]["source"]["episodes"] == 1
 
 
+@pytest.mark.slow
 def test_source_only_from_the_cli_h264_without_streaming(tmp_path: Path, inputs: dict[str, Path]) -> None:
     main(["--set", "dataset.include_expanded=false", "--set", "dataset.task=carry",
           "--set", "dataset.splits=[test]", "--set", "dataset.video_codec=h264",
@@ -243,6 +249,7 @@ def _push(root: Path, tmp_path: Path, **env: str) -> subprocess.CompletedProcess
                           capture_output=True, text=True, env=environ, timeout=120)
 
 
+@pytest.mark.slow
 def test_push_fails_clearly_offline(built: dict[str, Any], tmp_path: Path) -> None:
     root = built["out"] / "expanded"
     offline = _push(root, tmp_path, HF_HUB_OFFLINE="1", HF_TOKEN="hf_not_a_token")

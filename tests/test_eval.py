@@ -15,8 +15,9 @@ import torch
 import trimesh
 
 from stages.evaluate import evaluate
+from tests.conftest import load_params
 from tests.synthetic_store import write_synthetic_store
-from wc.config import ParamsError, load_section, read_params
+from wc.config import ParamsError, load_section
 from wc.data.store import TrajectoryStore
 from wc.eval import (ConstantVelocity, ErrorTally, EvaluateConfig, PenetrationTally, WorldContactPredictor, ZeroMotion,
                      cloth_signed_distance, first_divergence, max_edge_strain, mesh_signed_distance,
@@ -26,7 +27,6 @@ from wc.model.config import ModelConfig
 from wc.model.layout import scene_layout
 from wc.model.rollout import rollout
 from wc.model.worldcontact import WorldContact
-from wc.scene.config import SceneConfig
 from wc.scene.scene import build_scene
 from wc.train.checkpoint import save_weights
 from wc.train.config import TrainConfig
@@ -38,12 +38,12 @@ DT = 0.04
 
 @pytest.fixture(scope="module")
 def params() -> dict[str, Any]:
-    return read_params("params.yaml")
+    return load_params()
 
 
 @pytest.fixture(scope="module")
-def scene(params):
-    return build_scene(load_section(params, "scene", SceneConfig), ["bag", "sphere"])
+def scene(scene_cfg):
+    return build_scene(scene_cfg, ["bag", "sphere"])
 
 
 # -- penetration ----------------------------------------------------------------------------------------------
@@ -188,9 +188,9 @@ def _tiny_model(params) -> WorldContact:
 
 
 @pytest.fixture(scope="module")
-def store_path(tmp_path_factory, params) -> Path:
+def store_path(synthetic_store, params) -> Path:
     episodes = [("fall", "train"), ("carry", "train"), ("fall", "test"), ("handoff", "test")]
-    return write_synthetic_store(tmp_path_factory.mktemp("store") / "s.zarr", params, episodes, frames=10)
+    return synthetic_store(params, episodes, frames=10)
 
 
 def test_worldcontact_predictor_matches_the_model_rollout(store_path, params):
@@ -220,6 +220,7 @@ def _stage_params(params: dict[str, Any], models: Path) -> dict[str, Any]:
     return p
 
 
+@pytest.mark.slow
 def test_evaluate_stage_end_to_end(tmp_path, store_path, params):
     models = tmp_path / "models"
     (models / "worldcontact").mkdir(parents=True)

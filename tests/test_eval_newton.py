@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 import torch
 
-from wc.config import ParamsError, load_section, read_params
+from tests.conftest import load_params
+from wc.config import ParamsError, load_section
 from wc.data.store import TrajectoryStore, TrajectoryWriter
 from wc.dynamics import ObjectState
 from wc.eval.cases import CaseReader
@@ -34,7 +35,7 @@ CPU = torch.device("cpu")
 @pytest.fixture(scope="module")
 def params() -> dict[str, Any]:
     """params.yaml at a tiny size: a 200-vertex bag, 10 solver steps per 0.04 s frame."""
-    p = read_params("params.yaml")
+    p = load_params()
     p["scene"]["bag"]["target_vertices"] = 200
     p["sim"].update(substeps=10, dt_s=0.004, iterations=4)
     return p
@@ -86,6 +87,7 @@ def _mse(x: np.ndarray, truth: np.ndarray) -> float:
     return float(np.square(x - truth).sum(-1).mean())
 
 
+@pytest.mark.slow
 def test_reference_replay_reproduces_and_a_coarser_setting_is_faster_and_worse(store_path, configs):
     scene_cfg, sim_cfg = configs
     store, case, actions = _case(store_path, scene_cfg)
@@ -106,6 +108,7 @@ def test_reference_replay_reproduces_and_a_coarser_setting_is_faster_and_worse(s
     assert _mse(x, late.x[1:]) < 1e-6
 
 
+@pytest.mark.slow
 def test_half_resolution_runs_on_the_coarse_mesh_and_answers_in_the_stored_vertices(store_path, configs):
     scene_cfg, sim_cfg = configs
     store, case, actions = _case(store_path, scene_cfg)
@@ -167,6 +170,7 @@ def test_bad_chart_max_cases_is_named(params):
         load_section(p, "evaluate", EvaluateConfig)
 
 
+@pytest.mark.slow
 def test_stage_puts_newton_settings_on_the_chart_only(tmp_path, store_path, params):
     p = copy.deepcopy(params)
     p["evaluate"].update(rollout_frames=4, stability_frames=4, chart_max_cases=1, methods={

@@ -16,8 +16,9 @@ import torch
 import yaml
 
 from stages.expand import main
+from tests.conftest import load_params
 from tests.synthetic_store import write_synthetic_store
-from wc.config import ParamsError, load_section, read_params
+from wc.config import ParamsError, load_section
 from wc.data.store import TrajectoryStore, copy_store
 from wc.dynamics import ObjectState
 from wc.expand import (ExpandConfig, NoSourceEpisodesError, SourceEpisode, check_clear_at_start, check_on_table,
@@ -44,7 +45,7 @@ LOOSE = dict(max_speed_m_s=1e3, max_edge_strain=1e3, penetration_tol_m=10.0, sel
 
 @pytest.fixture(scope="module")
 def params() -> dict[str, Any]:
-    p = read_params("params.yaml")
+    p = load_params()
     p["validate"] = copy.deepcopy(LOOSE)
     p["tasks"][TASK].update(speed_range_m_s=[0.4, 0.5], amplitude_range_m=[0.02, 0.03], hold_s=0.0)  # ~20 frames
     p["tasks"]["common"].update(close_s=0.08)
@@ -135,6 +136,7 @@ def test_a_diverged_member_does_not_cut_the_batch_short():
         assert x[b, :, 0, 0] == pytest.approx(np.arange(8))  # finished, as if never batched with member 0
 
 
+@pytest.mark.slow
 def test_stage_writes_checked_worldcontact_episodes(run, store_path, params):
     out, r = run
     assert json.loads((out / "expand.json").read_text()) == json.loads(json.dumps(r))
@@ -167,6 +169,7 @@ def test_stage_writes_checked_worldcontact_episodes(run, store_path, params):
         assert depth.min() > -1e-5  # contact-projected after every step: nothing inside the table or the robot
 
 
+@pytest.mark.slow
 def test_same_seed_same_output(run, tmp_path, params, store_path, model_dir):
     out, first = run
     again = expand(params, model_dir, store_path, tmp_path / "again.zarr", tmp_path / "again.json")
@@ -181,6 +184,7 @@ def test_same_seed_same_output(run, tmp_path, params, store_path, model_dir):
     assert {k: v for k, v in first.items() if k not in timing} == {k: v for k, v in again.items() if k not in timing}
 
 
+@pytest.mark.slow
 def test_rejected_episodes_are_counted_per_check_and_not_written(tmp_path, params, store_path, model_dir):
     p = copy.deepcopy(params)
     p["validate"]["max_speed_m_s"] = 1e-4  # every moving rollout blows up
@@ -224,6 +228,7 @@ def test_clear_errors(tmp_path, params, store_path, model_dir):
         load_section(p, "expand", ExpandConfig)
 
 
+@pytest.mark.slow
 def test_command_line(tmp_path, params, store_path, model_dir, capsys):
     path = tmp_path / "params.yaml"
     path.write_text(yaml.safe_dump({k: v for k, v in params.items() if k != "_source"}))
@@ -250,6 +255,7 @@ def _settled(x: np.ndarray, top_z: float) -> np.ndarray:
     return y.astype(np.float32)
 
 
+@pytest.mark.slow
 def test_frame0_posture_is_planned_on_the_state_before_settling(rim, params):
     """The simulator agent plans frame 0's posture (settle_action) on the state before settling and lets the bag
     settle under it; expansion must do the same, not re-plan it on the settled (sagged) state."""
@@ -276,7 +282,7 @@ def test_frame0_posture_is_planned_on_the_state_before_settling(rim, params):
 
 def test_a_plan_that_penetrates_at_frame_0_is_infeasible(rim, params):
     task, scene, spec, initial = rim
-    cfg = load_section(read_params("params.yaml"), "validate", ValidateConfig)  # the module's params are LOOSE
+    cfg = load_section(load_params(), "validate", ValidateConfig)  # the module's params are LOOSE
     start = scene.home_action()
     x = _settled(initial.x, scene.table.top_z)
     check_clear_at_start(scene, x, start, cfg)  # clear: no error

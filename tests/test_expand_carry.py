@@ -3,26 +3,23 @@ joint projection; cloth near open pads is not held."""
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 import torch
 
-from wc.config import load_section, read_params
+from tests.conftest import load_params
+from wc.config import load_section
 from wc.expand.carry import PadCarry, held_between_pads
 from wc.expand.constraints import JointStepProjection
-from wc.scene.config import SceneConfig
 from wc.scene.scene import build_scene
 from wc.validate.predicates import finger_pad_boxes
 
-ROOT = Path(__file__).resolve().parents[1]
 LIFT = np.array([0.0, 0.0, 0.03])  # the whole robot raised 3 cm between the two frames
 
 
 @pytest.fixture(scope="module")
-def scene():
-    return build_scene(load_section(read_params(ROOT / "params.yaml"), "scene", SceneConfig))
+def scene(scene_cfg):
+    return build_scene(scene_cfg)
 
 
 def _poses(scene, opening_m: float) -> np.ndarray:
@@ -76,6 +73,6 @@ def test_bad_radius_and_projection_are_errors(scene):
 
     with pytest.raises(ValueError, match="radius must be positive"):
         PadCarry(scene, 0.0)
-    params = read_params(ROOT / "params.yaml", ["expand.pad_carry=true", "expand.projection=contact"])
+    params = load_params("expand.pad_carry=true", "expand.projection=contact")
     with pytest.raises(ParamsError, match="pad_carry needs projection 'joint'"):
         load_section(params, "expand", ExpandConfig)

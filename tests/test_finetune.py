@@ -95,6 +95,7 @@ def _capture_policy(monkeypatch: pytest.MonkeyPatch) -> dict[str, Any]:
     return seen
 
 
+@pytest.mark.slow
 def test_act_trains_with_lerobot_train_and_reloads_identically(data_root: Path, tmp_path: Path,
                                                                monkeypatch: pytest.MonkeyPatch) -> None:
     seen = _capture_policy(monkeypatch)
@@ -122,6 +123,7 @@ def test_act_trains_with_lerobot_train_and_reloads_identically(data_root: Path, 
     torch.testing.assert_close(actions, expected, rtol=0, atol=0)
 
 
+@pytest.mark.slow
 def test_stage_trains_both_datasets_with_identical_settings(data_root: Path, tmp_path: Path) -> None:
     params = {"policy": copy.deepcopy(ACT), "_source": "test"}
     report = run(params, data_root, tmp_path / "models", tmp_path / "finetune.json")
@@ -165,6 +167,7 @@ def test_clear_errors(data_root: Path, tmp_path: Path) -> None:
     assert sorted(p.name for p in tmp_path.iterdir()) == ["checkpoint", "notes"]  # nothing half-written
 
 
+@pytest.mark.slow
 def test_stock_lerobot_train_cli_runs_offline(data_root: Path, tmp_path: Path) -> None:
     """The documented command: lerobot's own CLI on our dataset, 2 steps, no network; load_policy reads its output."""
     cli = Path(sys.executable).with_name("lerobot-train")
@@ -242,6 +245,7 @@ def _checkpoint(path: Path, cfg: PolicyConfig, root: Path) -> Path:
     return path
 
 
+@pytest.mark.slow
 def test_pi05_one_training_step_from_a_local_checkpoint(data_root: Path, tiny_pi05: Path, tmp_path: Path) -> None:
     cfg = _cfg(PI05, tokenizer_path=str(tiny_pi05))
     with pytest.raises(PretrainedFilesError, match="pretrained_path is not set"):

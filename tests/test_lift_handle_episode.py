@@ -6,24 +6,24 @@ pads until the loop above them crossed itself, and a square-on pinch (yaw 0) ove
 One full episode (~100 frames) takes about a minute on one CPU core.
 """
 
-from pathlib import Path
-
 import numpy as np
+import pytest
 
+from tests.conftest import load_params
 from wc.agent.runner import build_task_world, execute, judge, reset_batch
-from wc.config import load_section, read_params
+from wc.config import load_section
 from wc.scene.config import SceneConfig
 from wc.sim.config import SimConfig
 from wc.tasks.base import EpisodeSpec, get_task
 from wc.tasks.bag_geometry import lowest_height
 from wc.validate import ValidateConfig
 
-ROOT = Path(__file__).resolve().parents[1]
+pytestmark = pytest.mark.slow
 SPEC = dict(seed=5, cell=0, speed=0.08, amplitude=0.19)  # cell 0: grasp depth 0.07 m, yaw -15 deg
 
 
 def test_default_lift_handle_episode_is_accepted_and_lifts_the_bag():
-    params = read_params(ROOT / "params.yaml")
+    params = load_params()
     task = get_task("lift_handle", params)
     assert task.cell_values(0) == {"grasp_depth_bins_m": 0.07, "grasp_across_bins": 0.5, "yaw_bins_deg": -15.0}
     sim_cfg = load_section(params, "sim", SimConfig)

@@ -3,13 +3,12 @@
 from __future__ import annotations
 
 from dataclasses import replace
-from pathlib import Path
 
 import pytest
 import torch
 
-from tests.synthetic_store import write_synthetic_store
-from wc.config import load_section, read_params
+from tests.conftest import load_params
+from wc.config import load_section
 from wc.data.store import TrajectoryStore
 from wc.model.config import ModelConfig
 from wc.model.layout import scene_layout
@@ -85,9 +84,9 @@ def test_grid_dim_needs_no_extent() -> None:
 
 
 @pytest.fixture(scope="module")
-def case(tmp_path_factory):
-    params = read_params("params.yaml")
-    path = write_synthetic_store(Path(tmp_path_factory.mktemp("s")) / "s.zarr", params, [("fall", "test")], frames=9)
+def case(synthetic_store):
+    params = load_params()
+    path = synthetic_store(params, [("fall", "test")], frames=9)
     store = TrajectoryStore(path)
     phase = episode_phases(store, store.episode_ids[0])[0]
     cfg = replace(load_section(params, "model", ModelConfig), encoder_levels=1, decoder_layers=1)
@@ -129,6 +128,6 @@ def test_non_finite_state_is_refused_before_any_search(case) -> None:
 
 
 def test_config_rejects_negative_skin() -> None:
-    params = read_params("params.yaml")
+    params = load_params()
     with pytest.raises(ValueError, match="neighbor_skin_m"):
         ModelConfig(**{**params["model"], "neighbor_skin_m": -0.001}).validate()

@@ -26,6 +26,7 @@ def random_joints(rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndar
     return q, rng.uniform(*P.OPENING_LIMITS_M, n).astype(np.float32)
 
 
+@pytest.mark.slow
 def test_fk_matches_newton_eval_fk():
     newton = pytest.importorskip("newton")
     import warp as wp

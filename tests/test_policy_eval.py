@@ -15,7 +15,8 @@ import pytest
 import torch
 import yaml
 
-from wc.config import ParamsError, load_section, read_params
+from tests.conftest import load_params
+from wc.config import ParamsError, load_section
 from wc.policy.comparison import FLAG, flagged_title
 from wc.policy.dataset import RIGHT_ARM, create_dataset
 from wc.policy.dataset_config import DatasetConfig
@@ -32,7 +33,7 @@ ORACLE = dict(lift_height_m=0.04, hold_s=0.2)  # margin below the 5.1-5.4 cm it 
 
 
 def _params(**policy_eval: Any) -> dict[str, Any]:
-    params = read_params("params.yaml")
+    params = load_params()
     params["render"].update(width=SIZE, height=SIZE)
     params["policy_eval"].update(task="lift_handle", device="cpu", **policy_eval)  # the oracle seed is lift_handle's
     return params
@@ -65,6 +66,7 @@ def test_success_needs_an_unbroken_hold() -> None:
 
 # --- the environment on real Newton ----------------------------------------------------------------------------
 
+@pytest.mark.slow
 def test_reset_and_step_shapes_and_frames(env: WorldContactLiftEnv) -> None:
     obs, info = env.reset(seed=ORACLE_SEED)
     assert set(obs) == {"pixels", "agent_pos"} and set(obs["pixels"]) == {"top", "wrist"}
@@ -90,6 +92,7 @@ def test_reset_and_step_shapes_and_frames(env: WorldContactLiftEnv) -> None:
         env.step(np.zeros(14, np.float32))
 
 
+@pytest.mark.slow
 def test_the_policy_sees_frames_as_the_dataset_stored_them(env: WorldContactLiftEnv, tmp_path: Path) -> None:
     """One rendered frame through both paths: written into a LeRobot dataset by the dataset stage's writer and
     decoded by stock LeRobot (training), and through the env's observation (evaluation). Same size, RGB order,
@@ -116,6 +119,7 @@ def test_the_policy_sees_frames_as_the_dataset_stored_them(env: WorldContactLift
         np.testing.assert_array_equal(obs["pixels"][cam], env.video(raw[cam]))
 
 
+@pytest.mark.slow
 def test_task_program_replayed_closed_loop_succeeds(env: WorldContactLiftEnv) -> None:
     outcome, frames, s_per_step = run_episode(env, OracleActor(env), ORACLE_SEED, record=True)
     assert outcome.success and outcome.failure is None, outcome
@@ -155,6 +159,7 @@ def _tiny_act(path: Path, seed: int) -> None:
         part.save_pretrained(path)
 
 
+@pytest.mark.slow
 def test_stage_end_to_end(tmp_path: Path) -> None:
     for i, name in enumerate(("source", "expanded")):
         _tiny_act(tmp_path / "models" / name, seed=i)
@@ -197,6 +202,7 @@ def test_missing_policy_and_bad_params_fail_clearly(tmp_path: Path) -> None:
 
 # --- lerobot's own code path -----------------------------------------------------------------------------------
 
+@pytest.mark.slow
 def test_lerobot_make_env_builds_the_plugin_env(tmp_path: Path) -> None:
     import lerobot_env_worldcontact  # noqa: F401  registers the env type and the gym id
     from lerobot.envs.factory import make_env, make_env_config

@@ -8,8 +8,7 @@ import numpy as np
 import pytest
 import warp as wp
 
-from wc.config import read_params, load_section
-from wc.scene.config import SceneConfig
+from tests.conftest import load_params
 from wc.scene.scene import build_scene
 from wc.validate import PREDICATES, ValidateConfig, first_failure
 from wc.validate.predicates import (
@@ -28,8 +27,8 @@ CFG = ValidateConfig(
 
 
 @pytest.fixture(scope="module")
-def scene():
-    return build_scene(load_section(read_params("params.yaml"), "scene", SceneConfig))
+def scene(scene_cfg):
+    return build_scene(scene_cfg)
 
 
 @pytest.fixture()
@@ -132,7 +131,7 @@ def test_an_edge_that_cannot_be_checked_to_its_end_is_an_error(scene, clean):
 
 def test_shipped_params_check_every_frame():
     for path in ("params.yaml", "params/gpu.yaml"):
-        assert read_params(path)["validate"]["self_intersection_every"] == 1, path
+        assert load_params(file=path)["validate"]["self_intersection_every"] == 1, path
 
 
 def _grip_handle_then_release(scene, clean):
@@ -196,11 +195,6 @@ HELD_POSE = (0.0, 0.0, 0.1, 0.0, 0.0, 0.0, 1.0)  # cube 10 cm out along right_li
 def yaw_matrix(deg):
     c, s = np.cos(np.deg2rad(deg)), np.sin(np.deg2rad(deg))
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
-@pytest.fixture(scope="module")
-def scene_cfg():
-    return load_section(read_params("params.yaml"), "scene", SceneConfig)
 
 
 def with_rigid(scene, ep, name, centre, rot=np.eye(3), frames=slice(None)):

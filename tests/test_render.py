@@ -10,8 +10,9 @@ import numpy as np
 import pytest
 import zarr
 
+from tests.conftest import SyntheticStore, load_params
 from tests.synthetic_store import write_synthetic_store
-from wc.config import ParamsError, load_section, read_params
+from wc.config import ParamsError, load_section
 from wc.data.store import TrajectoryStore
 from wc.render.frames import RenderedStore
 from wc.render.geometry import episode_geometry
@@ -22,21 +23,19 @@ from wc.scene.cameras import camera_pose, intrinsics
 from wc.scene.config import SceneConfig
 from wc.scene.scene import build_scene
 
-ROOT = Path(__file__).resolve().parents[1]
 SIZE = 32
 
 
 @pytest.fixture(scope="module")
 def params() -> dict:
-    p = read_params(ROOT / "params.yaml")
+    p = load_params()
     p["render"].update(width=SIZE, height=SIZE, frames_per_batch=4, tasks=None, sheet_frames=3)
     return p
 
 
 @pytest.fixture(scope="module")
-def store(params: dict, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    path = tmp_path_factory.mktemp("traj") / "trajectories.zarr"
-    return write_synthetic_store(path, params, [("carry", "train"), ("handoff", "test")], frames=6)
+def store(params: dict, synthetic_store: SyntheticStore) -> Path:
+    return synthetic_store(params, [("carry", "train"), ("handoff", "test")], frames=6)
 
 
 def _renderer(params: dict, store: Path, eid: str) -> tuple[EpisodeRenderer, TrajectoryStore, SceneConfig]:
@@ -46,6 +45,7 @@ def _renderer(params: dict, store: Path, eid: str) -> tuple[EpisodeRenderer, Tra
     return EpisodeRenderer(episode_geometry(src, eid, scene_cfg), cams, "cpu", 4, True), src, scene_cfg
 
 
+@pytest.mark.slow
 def test_stage_writes_frames_report_and_sheet(params: dict, store: Path, tmp_path: Path) -> None:
     out, report, sheet = tmp_path / "rendered.zarr", tmp_path / "render.json", tmp_path / "sheet.png"
     result = render(params, [(store, out)], report, sheet)
@@ -76,6 +76,7 @@ def test_stage_writes_frames_report_and_sheet(params: dict, store: Path, tmp_pat
     assert result["outputs"][1]["episodes"] == 0 and RenderedStore(tmp_path / "empty_frames.zarr").episode_ids() == []
 
 
+@pytest.mark.slow
 def test_bag_is_drawn_where_it_projects(params: dict, store: Path) -> None:
     renderer, src, scene_cfg = _renderer(params, store, "ep_000000")
     a = src.read_episode("ep_000000", ("x", "link_poses"))
@@ -96,6 +97,7 @@ def test_bag_is_drawn_where_it_projects(params: dict, store: Path) -> None:
     assert r > b + 30  # the light fabric colour, not the grey robot or the blue wall
 
 
+@pytest.mark.slow
 def test_wrist_view_follows_the_right_arm(params: dict, store: Path) -> None:
     renderer, src, scene_cfg = _renderer(params, store, "ep_000000")
     x = src.read_episode("ep_000000", ("x",))["x"][:1].repeat(3, axis=0)
@@ -109,6 +111,7 @@ def test_wrist_view_follows_the_right_arm(params: dict, store: Path) -> None:
     assert np.abs(wrist[2] - wrist[0]).mean() > 3 * np.abs(wrist[1] - wrist[0]).mean() + 1
 
 
+@pytest.mark.slow
 def test_output_is_atomic_on_error(params: dict, store: Path, tmp_path: Path) -> None:
     broken = tmp_path / "broken.zarr"
     write_synthetic_store(broken, params, [("fall", "train"), ("carry", "train")], frames=6)

@@ -7,18 +7,17 @@ import json
 import pytest
 
 from benchmarks.rollout_speed import main
-from tests.synthetic_store import write_synthetic_store
-from wc.config import read_params
+from tests.conftest import ROOT, load_params
 
-TINY = ["--params", "params.yaml", "--set", "model.encoder_levels=1", "--set", "model.decoder_layers=1"]
+TINY = ["--params", str(ROOT / "params.yaml"), "--set", "model.encoder_levels=1", "--set", "model.decoder_layers=1"]
 
 
 @pytest.fixture(scope="module")
-def store(tmp_path_factory) -> str:
-    path = tmp_path_factory.mktemp("s") / "s.zarr"
-    return str(write_synthetic_store(path, read_params("params.yaml"), [("fall", "test")], frames=6))
+def store(synthetic_store) -> str:
+    return str(synthetic_store(load_params(), [("fall", "test")], frames=6))
 
 
+@pytest.mark.slow
 def test_rollout_speed_runs_and_reports(tmp_path, store) -> None:
     reference = tmp_path / "sim_speed.json"
     reference.write_text(json.dumps({"settings": [

@@ -1,39 +1,29 @@
 """Scene assembly: only the objects a task needs, sample sets per body, held objects posed by their link."""
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 
-from wc.config import load_section, read_params
 from wc.scene.cameras import camera_pose, intrinsics
-from wc.scene.config import SceneConfig
 from wc.scene.scene import build_scene
 from wc.sim.kinematic import transform_points
 
-ROOT = Path(__file__).resolve().parents[1]
 
-
-@pytest.fixture(scope="module")
-def cfg() -> SceneConfig:
-    return load_section(read_params(ROOT / "params.yaml"), "scene", SceneConfig)
-
-
-def test_only_requested_objects(cfg):
-    scene = build_scene(cfg, ["bag"])
+def test_only_requested_objects(scene_cfg):
+    scene = build_scene(scene_cfg, ["bag"])
     assert list(scene.objects) == ["bag"]
-    both = build_scene(cfg, ["sphere", "bag"])
+    both = build_scene(scene_cfg, ["sphere", "bag"])
     assert list(both.objects) == ["bag", "sphere"]  # fixed order, whatever the request order
     slices = both.vertex_slices()
     assert slices["sphere"].start == len(both.objects["bag"].vertices) == slices["bag"].stop
     with pytest.raises(ValueError, match="unknown object 'teapot'"):
-        build_scene(cfg, ["teapot"])
+        build_scene(scene_cfg, ["teapot"])
 
 
-def test_samples_only_on_touching_links(cfg):
-    scene = build_scene(cfg)
+def test_samples_only_on_touching_links(scene_cfg):
+    scene = build_scene(scene_cfg)
     bodies = {s.body for s in scene.samples}
-    assert bodies == {f"{side}_{link}" for side in ("left", "right") for link in cfg.robot.sampled_links} | {"table"}
+    links = scene_cfg.robot.sampled_links
+    assert bodies == {f"{side}_{link}" for side in ("left", "right") for link in links} | {"table"}
     assert all(s.body in scene.link_names + scene.env_names for s in scene.samples)
     tags = {s.tag for s in scene.samples}
     assert len(tags) == len(scene.samples)  # every sampled body has its own tag
@@ -41,9 +31,9 @@ def test_samples_only_on_touching_links(cfg):
         np.testing.assert_allclose(np.linalg.norm(s.local_normals, axis=1), 1.0, atol=1e-5)
 
 
-def test_held_object_follows_its_link(cfg):
+def test_held_object_follows_its_link(scene_cfg):
     local = [0.0, 0.0, 0.16, 0.0, 0.0, 0.0, 1.0]
-    scene = build_scene(cfg, ["bag"], held={"cube": ("right_link6", local)})
+    scene = build_scene(scene_cfg, ["bag"], held={"cube": ("right_link6", local)})
     assert scene.link_names[-1] == "held_cube" and "held_cube" in {s.body for s in scene.samples}
     rng = np.random.default_rng(0)
     actions = np.repeat(scene.home_action()[None], 3, axis=0)
@@ -54,12 +44,12 @@ def test_held_object_follows_its_link(cfg):
     np.testing.assert_allclose(held[:, :3], transform_points(link6, np.array([local[:3]]))[:, 0], atol=1e-6)
     np.testing.assert_allclose(np.abs(np.sum(held[:, 3:] * link6[:, 3:], axis=1)), 1.0, atol=1e-6)
     with pytest.raises(ValueError, match="unknown link"):
-        build_scene(cfg, ["bag"], held={"cube": ("right_elbow", local)})
+        build_scene(scene_cfg, ["bag"], held={"cube": ("right_elbow", local)})
 
 
-def test_wrist_camera_rides_on_its_link(cfg):
-    scene = build_scene(cfg)
-    wrist, top = cfg.cameras["wrist"], cfg.cameras["top"]
+def test_wrist_camera_rides_on_its_link(scene_cfg):
+    scene = build_scene(scene_cfg)
+    wrist, top = scene_cfg.cameras["wrist"], scene_cfg.cameras["top"]
     a = scene.home_action()
     b = a.copy()
     b[7] += 0.3  # turn the right arm's base joint

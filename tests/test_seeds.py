@@ -1,15 +1,13 @@
 """Simulate, expand and policy evaluation draw episode seeds from disjoint streams (wc/seeds.py)."""
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 
-from wc.config import ParamsError, load_section, read_params
+from tests.conftest import load_params
+from wc.config import ParamsError, load_section
 from wc.policy_eval.config import PolicyEvalConfig
 from wc.seeds import STREAM_SPAN, SeedStream, episode_seed, stream_of, stream_range
 
-ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_each_stage_stream_holds_only_its_own_seeds():
@@ -44,13 +42,13 @@ def test_a_seed_outside_every_stream_is_an_error():
 
 @pytest.mark.parametrize("file", ["params.yaml", "params/gpu.yaml"])
 def test_shipped_policy_trials_live_in_the_policy_stream(file):
-    cfg = load_section(read_params(ROOT / file), "policy_eval", PolicyEvalConfig)
+    cfg = load_section(load_params(file=file), "policy_eval", PolicyEvalConfig)
     for trial in range(cfg.trials):
         assert stream_of(cfg.seed_offset + cfg.seed + trial) is SeedStream.POLICY_EVAL
 
 
 @pytest.mark.parametrize("offset", [0, 2**32, 3 * 2**32 - 1])  # simulate's, expand's, the last trial past the end
 def test_policy_trial_seeds_outside_their_stream_are_refused(offset):
-    params = read_params(ROOT / "params.yaml", [f"policy_eval.seed_offset={offset}", "policy_eval.trials=2"])
+    params = load_params(f"policy_eval.seed_offset={offset}", "policy_eval.trials=2")
     with pytest.raises(ParamsError, match="policy seed stream"):
         load_section(params, "policy_eval", PolicyEvalConfig)

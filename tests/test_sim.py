@@ -3,12 +3,11 @@
 Slow (Newton kernels compile on first use, ~1-2 min; then ~1-2 min of simulation).
 """
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 
-from wc.config import load_section, read_params
+from tests.conftest import load_params
+from wc.config import load_section
 from wc.dynamics import ObjectState
 from wc.scene.config import SceneConfig
 from wc.scene.scene import build_scene
@@ -17,14 +16,13 @@ from wc.sim.newton_sim import NewtonSimulator
 from wc.tasks.base import EpisodeSpec, get_task
 
 pytestmark = pytest.mark.slow
-ROOT = Path(__file__).resolve().parents[1]
 # A short lift: hold 0.4 s instead of 2 s; everything else is the default scene and task.
 OVERRIDES = ["tasks.lift_handle.hold_s=0.4", "sim.settle_s=0.4"]
 
 
 @pytest.fixture(scope="module")
 def setup():
-    params = read_params(ROOT / "params.yaml", OVERRIDES)
+    params = load_params(*OVERRIDES)
     scene = build_scene(load_section(params, "scene", SceneConfig))
     return params, scene, load_section(params, "sim", SimConfig), get_task("lift_handle", params)
 

@@ -8,23 +8,23 @@ import pytest
 import warp as wp
 
 from stages.simulate import simulate, task_key
+from tests.conftest import load_params
 from wc.agent.memory import FailureMemory, Outcome
-from wc.config import ParamsError, read_params
+from wc.config import ParamsError
 from wc.data.store import TrajectoryStore
 
-ROOT = Path(__file__).resolve().parents[1]
 TWO_TASKS = ["agent.tasks=[bag_drop, sphere_drop]", "agent.episodes_per_task=1", "agent.max_attempts_per_task=2",
              "tasks.bag_drop.duration_s=0.2", "tasks.sphere_drop.duration_s=0.2", "sim.settle_s=0.1"]
 
 
 def _run(tmp_path: Path, workers: int, overrides: tuple[str, ...] = ()) -> dict:
-    params = read_params(ROOT / "params.yaml", TWO_TASKS + [f"agent.workers={workers}", *overrides])
+    params = load_params(*TWO_TASKS, f"agent.workers={workers}", *overrides)
     return simulate(params, tmp_path / "raw.zarr", tmp_path / "simulate.json", tmp_path / "memory.json")
 
 
 def _seed_memory(path: Path) -> None:
     """An earlier run's failures in cell 0 of both tasks: the planners must read them (so pick cell 1)."""
-    params = read_params(ROOT / "params.yaml", TWO_TASKS)
+    params = load_params(*TWO_TASKS)
     FailureMemory(path, [Outcome(name, task_key(params, name), 0, 0.1, 0.05, 1, "penetration", 3)
                          for name in ("bag_drop", "sphere_drop")]).save()
 
@@ -39,6 +39,7 @@ def runs(tmp_path_factory) -> dict[int, tuple[Path, dict]]:
     return out
 
 
+@pytest.mark.slow
 def test_workers_write_the_same_episodes(runs):
     (one, report_one), (two, report_two) = runs[1], runs[2]
     a, b = TrajectoryStore(one / "raw.zarr"), TrajectoryStore(two / "raw.zarr")
@@ -58,6 +59,7 @@ def test_workers_write_the_same_episodes(runs):
     assert json.loads((two / "simulate.json").read_text())["workers"] == 2
 
 
+@pytest.mark.slow
 def test_workers_file_the_same_outcomes(runs):
     memories = [json.loads((runs[w][0] / "memory.json").read_text())["outcomes"] for w in (1, 2)]
     assert memories[0] == memories[1]
@@ -73,11 +75,12 @@ def test_bad_workers_fail_without_output(tmp_path, workers, message):
 
 
 def test_repeated_task_fails(tmp_path):
-    params = read_params(ROOT / "params.yaml", TWO_TASKS + ["agent.tasks=[bag_drop, bag_drop]"])
+    params = load_params(*TWO_TASKS, "agent.tasks=[bag_drop, bag_drop]")
     with pytest.raises(ParamsError, match=r"tasks must not repeat, got \['bag_drop'\]"):
         simulate(params, tmp_path / "raw.zarr", tmp_path / "simulate.json", tmp_path / "memory.json")
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(wp.is_cuda_available(), reason="needs a machine without CUDA to fail in the worker")
 def test_worker_error_names_the_task_and_leaves_no_store(tmp_path):
     # the parent never builds a simulator, so sim.device=cuda without CUDA first fails in the worker

@@ -9,17 +9,17 @@ import numpy as np
 import pytest
 
 from stages.simulate import simulate
-from wc.config import ParamsError, read_params
+from tests.conftest import ROOT, load_params
+from wc.config import ParamsError
 from wc.data.store import TrajectoryStore
 
-ROOT = Path(__file__).resolve().parents[1]
 SHORT = ["agent.tasks=[lift_handle]", "agent.episodes_per_task=1", "agent.max_attempts_per_task=1",
          "tasks.lift_handle.hold_s=0.2", "sim.settle_s=0.2"]
 
 
 def _run(tmp_path: Path, overrides: list[str], out: Path | None = None):
     out = out or tmp_path / "raw.zarr"
-    return simulate(read_params(ROOT / "params.yaml", SHORT + overrides), out, tmp_path / "simulate.json",
+    return simulate(load_params(*SHORT, *overrides), out, tmp_path / "simulate.json",
                     tmp_path / "memory.json")
 
 
@@ -68,7 +68,7 @@ def test_bad_params_fail_without_output(tmp_path, overrides, message):
 
 
 def test_missing_params_key_fails_without_output(tmp_path):
-    params = read_params(ROOT / "params.yaml", SHORT)
+    params = load_params(*SHORT)
     del params["sim"]["dt_s"]
     with pytest.raises(ParamsError, match=r"missing key sim\.dt_s"):
         simulate(params, tmp_path / "raw.zarr", tmp_path / "simulate.json", tmp_path / "memory.json")
@@ -82,6 +82,7 @@ def test_unwritable_output_fails_without_output(tmp_path):
     _no_output(tmp_path)
 
 
+@pytest.mark.slow
 def test_dvc_pipeline_declares_simulate():
     listed = subprocess.run([sys.executable, "-m", "dvc", "stage", "list"], cwd=ROOT, capture_output=True, text=True,
                             check=True).stdout
@@ -89,7 +90,7 @@ def test_dvc_pipeline_declares_simulate():
 
 
 def test_bad_contact_buffer_fails_without_output(tmp_path):
-    params = read_params(ROOT / "params.yaml", SHORT)
+    params = load_params(*SHORT)
     params["sim"]["body_particle_contact_buffer"] = 0
     with pytest.raises(ValueError, match="body_particle_contact_buffer must be >= 1"):
         simulate(params, tmp_path / "raw.zarr", tmp_path / "simulate.json", tmp_path / "memory.json")
@@ -99,7 +100,7 @@ def test_bad_contact_buffer_fails_without_output(tmp_path):
 @pytest.mark.slow
 def test_deadline_passed_keeps_a_valid_store(tmp_path):
     """A chunked job whose time is up starts no batch: the report says so and the store is still whole."""
-    report = simulate(read_params(ROOT / "params.yaml", SHORT), tmp_path / "raw.zarr", tmp_path / "simulate.json",
+    report = simulate(load_params(*SHORT), tmp_path / "raw.zarr", tmp_path / "simulate.json",
                       tmp_path / "memory.json", max_minutes=1e-9)
     assert report["stopped_early"] is True and report["episodes"] == 0
     assert TrajectoryStore(tmp_path / "raw.zarr").episode_ids == []

@@ -15,8 +15,9 @@ import pytest
 import torch
 
 from stages.stress import stress
+from tests.conftest import load_params
 from tests.synthetic_store import write_synthetic_store
-from wc.config import ParamsError, load_section, read_params
+from wc.config import ParamsError, load_section
 from wc.data.store import TrajectoryStore
 from wc.eval.cases import CaseReader
 from wc.eval.predictors import ConstantVelocity
@@ -35,7 +36,7 @@ STEPS = 10
 
 @pytest.fixture(scope="module")
 def params() -> dict[str, Any]:
-    return read_params(Path(__file__).resolve().parents[1] / "params.yaml")
+    return load_params()
 
 
 def _stress_params(params: dict[str, Any], models: Path) -> dict[str, Any]:
@@ -73,6 +74,7 @@ def run(tmp_path_factory, params) -> tuple[dict[str, Any], dict[str, Path], dict
     return p, out, stress(p, **{k: str(v) for k, v in out.items()})
 
 
+@pytest.mark.slow
 def test_outputs_have_every_case_and_method(run):
     _, out, r = run
     rows = list(csv.DictReader(out["csv"].open()))
@@ -94,6 +96,7 @@ def test_outputs_have_every_case_and_method(run):
     assert r["ground_truth"]["reused"] is False and set(r["ground_truth"]["cases"]) == {"nominal", "fast_motion"}
 
 
+@pytest.mark.slow
 def test_fast_motion_really_moves_the_gripper_faster(run):
     _, out, r = run
     store = TrajectoryStore(out["store"])
@@ -106,6 +109,7 @@ def test_fast_motion_really_moves_the_gripper_faster(run):
         assert attrs["first_failure"] not in ("non_finite", "blow_up") and attrs["split"] == "test"
 
 
+@pytest.mark.slow
 def test_video_has_three_panels_and_the_expected_frames(run):
     _, out, r = run
     cap = cv2.VideoCapture(str(out["video"]))
@@ -125,6 +129,7 @@ def test_video_has_three_panels_and_the_expected_frames(run):
     assert all(np.abs(labels[i] - labels[j]).mean() > 1.0 for i, j in ((0, 1), (0, 2), (1, 2)))
 
 
+@pytest.mark.slow
 def test_rerun_reuses_the_ground_truth(run):
     p, out, r = run
     again = stress(p, **{k: str(v) for k, v in out.items()})

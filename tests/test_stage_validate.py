@@ -14,7 +14,8 @@ import pytest
 
 import wc.data.store as store_module
 from stages.validate import main, validate
-from wc.config import ParamsError, load_section, params_hash, read_params
+from tests.conftest import load_params
+from wc.config import ParamsError, load_section, params_hash
 from wc.data.store import TrajectoryStore, TrajectoryWriter
 from wc.scene.config import SceneConfig
 from wc.scene.piper import ARM_BODY_NAMES
@@ -47,7 +48,7 @@ CLEAN = ["ep_000000", "ep_000001", "ep_000002", "ep_000005", "ep_000006", "ep_00
 
 @pytest.fixture(scope="module")
 def params() -> dict[str, Any]:
-    p = read_params("params.yaml")
+    p = load_params()
     p["validate"] = copy.deepcopy(VALIDATE)
     return p
 
@@ -106,6 +107,7 @@ def result(tmp_path_factory, raw, params) -> tuple[dict[str, Any], Path, Path]:
     return report, d / "trajectories.zarr", d / "validate.json"
 
 
+@pytest.mark.slow
 def test_output_holds_exactly_the_clean_episodes(result, raw):
     report, out, _ = result
     dst, src = TrajectoryStore(out), TrajectoryStore(raw)
@@ -119,6 +121,7 @@ def test_output_holds_exactly_the_clean_episodes(result, raw):
     assert dst.episode_attrs("ep_000008")["held"] == HELD
 
 
+@pytest.mark.slow
 def test_splits_follow_the_rule(result, params):
     report, out, _ = result
     dst = TrajectoryStore(out)
@@ -131,6 +134,7 @@ def test_splits_follow_the_rule(result, params):
                         "carry_cube": ["train"]}  # 1: always train
 
 
+@pytest.mark.slow
 def test_report_counts(result, params):
     report, _, path = result
     assert json.loads(path.read_text()) == json.loads(json.dumps(report))
@@ -153,6 +157,7 @@ def test_report_counts(result, params):
     assert report["wall_s"] > 0 and report["environment"]["device"] == "cpu"
 
 
+@pytest.mark.slow
 def test_split_is_deterministic(result, raw, params, tmp_path):
     first, out, _ = result
     again = validate(params, raw, tmp_path / "again.zarr", tmp_path / "again.json")
@@ -181,6 +186,7 @@ def test_split_rule():
     assert len({tuple(sorted(s.items())) for s in seeds}) > 1
 
 
+@pytest.mark.slow
 def test_cli(raw, params, tmp_path, capsys):
     params_file = tmp_path / "params.yaml"
     params_file.write_text(json.dumps({k: v for k, v in params.items() if k != "_source"}))  # JSON is YAML
@@ -193,6 +199,7 @@ def _leftovers(d: Path) -> list[str]:
     return sorted(p.name for p in d.iterdir() if ".tmp-" in p.name)
 
 
+@pytest.mark.slow
 def test_atomic_output_on_failure(raw, params, tmp_path, monkeypatch):
     out = tmp_path / "trajectories.zarr"
     validate(params, raw, out, tmp_path / "validate.json")

@@ -6,15 +6,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from tests.conftest import load_params
 from wc.agent.runner import build_task_world, execute, judge, layout_attrs, reset_batch, simulator_store
-from wc.config import load_section, read_params
+from wc.config import load_section
 from wc.expand.teacher import teacher_check
 from wc.scene.config import SceneConfig
 from wc.sim.config import SimConfig
 from wc.tasks.base import EpisodeSpec, get_task
 from wc.validate import ValidateConfig
 
-ROOT = Path(__file__).resolve().parents[1]
 TASK = "bag_drop"  # one second: the shortest Newton episode
 
 
@@ -34,7 +34,7 @@ def _write(path: Path, world, scene_cfg, sim_cfg, episodes, failure: str | None 
 def test_newton_episodes_replay_to_themselves_batched_over_worlds(tmp_path):
     """Two plans of different lengths, one stored accepted, one stored as WorldContact-rejected, replay together
     in two Newton worlds: each to its own trajectory and Newton's own verdict on its own frames."""
-    params = read_params(ROOT / "params.yaml", [f"expand.task={TASK}", "sim.worlds=2"])
+    params = load_params(f"expand.task={TASK}", "sim.worlds=2")
     task = get_task(TASK, params)
     scene_cfg, sim_cfg = load_section(params, "scene", SceneConfig), load_section(params, "sim", SimConfig)
     validate_cfg = load_section(params, "validate", ValidateConfig)
@@ -64,7 +64,7 @@ def test_newton_episodes_replay_to_themselves_batched_over_worlds(tmp_path):
 
 
 def test_missing_store_is_named_and_an_empty_one_reported(tmp_path):
-    params = read_params(ROOT / "params.yaml")
+    params = load_params()
     with pytest.raises(FileNotFoundError, match="run the expand stage"):
         teacher_check(params, tmp_path / "none.zarr")
     scene_cfg, sim_cfg = load_section(params, "scene", SceneConfig), load_section(params, "sim", SimConfig)

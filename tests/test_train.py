@@ -17,7 +17,8 @@ import pytest
 import torch
 
 from stages.train import run
-from tests.synthetic_store import default_params, write_synthetic_store
+from tests.conftest import default_params
+from tests.synthetic_store import write_synthetic_store
 from wc.config import ParamsError, load_section
 from wc.data.store import TrajectoryStore
 from wc.model.config import ModelConfig
@@ -46,8 +47,8 @@ def params() -> dict[str, Any]:
 
 
 @pytest.fixture(scope="module")
-def store_path(tmp_path_factory, params) -> Path:
-    return write_synthetic_store(tmp_path_factory.mktemp("store") / "s.zarr", params, EPISODES, frames=10)
+def store_path(synthetic_store, params) -> Path:
+    return synthetic_store(params, EPISODES, frames=10)
 
 
 def _batch(store_path: Path, params: dict[str, Any], episode: str = "ep_000000", length: int = 5):
@@ -224,6 +225,7 @@ def trained(tmp_path_factory, store_path, params) -> tuple[dict[str, Any], Path]
     return report, d
 
 
+@pytest.mark.slow
 def test_stage_writes_model_report_and_curves(trained):
     report, d = trained
     assert json.loads((d / "train.json").read_text())["params_hash"] == report["params_hash"]
@@ -245,6 +247,7 @@ def test_stage_writes_model_report_and_curves(trained):
     assert report["s_per_step_median"] > 0 and np.isfinite(report["best_val_loss"])
 
 
+@pytest.mark.slow
 def test_resume_continues_from_the_partial_checkpoint(store_path, params, tmp_path):
     first = copy.deepcopy(params)
     first["train"]["base"]["steps"] = 3
@@ -269,6 +272,7 @@ def test_edge_strain_and_selection_scores():
     assert selection_score({**good, "rollout_position_mse_m2": float("nan")}, "rollout") == float("inf")
 
 
+@pytest.mark.slow
 def test_rollout_selection_ships_the_best_held_out_rollout_never_a_diverged_one(store_path, params, tmp_path):
     """select_by rollout: the shipped checkpoint is the evaluation with the lowest held-out rollout MSE among those
     that did not diverge; a strain limit every rollout breaks leaves each stage its first checkpoint, scored inf."""
@@ -326,6 +330,7 @@ def test_weighted_sampler_oversamples_and_checks_its_weights(store_path):
         LayoutBatchSampler(windows, 4, seed=0, weights=np.zeros(len(windows)))
 
 
+@pytest.mark.slow
 def test_event_oversampling_in_a_training_run(store_path, params, tmp_path):
     p = copy.deepcopy(params)
     p["train"].update(event_oversample=3.0, event_accel_m_s2=1.0)

@@ -14,9 +14,12 @@ import torch
 from safetensors.torch import load_file
 
 from stages.train import run
-from tests.synthetic_store import default_params, write_synthetic_store
+from tests.conftest import default_params
+from tests.synthetic_store import write_synthetic_store
 from wc.train.pretrained import resolve_checkpoint
 
+# every test uses `pretrained`, a stage run from scratch
+pytestmark = pytest.mark.slow
 EPISODES = [("fall", "train"), ("carry", "train"), ("fall", "val")]
 STEPS = {"base": {"steps": 2, "peak_lr": 1e-3, "start_lr": 1e-4, "final_lr": 1e-4, "warmup_steps": 1},
          "projection": {"steps": 0, "peak_lr": 0.0, "start_lr": 0.0, "final_lr": 0.0, "warmup_steps": 0},

@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from stages.train import run
-from tests.synthetic_store import default_params, write_synthetic_store
+from tests.conftest import default_params
 from wc.data.store import TrajectoryStore
 from wc.model.config import ModelConfig
 from wc.model.padded_neighbors import NeighborCapacity
@@ -45,8 +45,8 @@ def params() -> dict[str, Any]:
 
 
 @pytest.fixture(scope="module")
-def store_path(tmp_path_factory, params) -> Path:
-    return write_synthetic_store(tmp_path_factory.mktemp("store") / "s.zarr", params, EPISODES, frames=10)
+def store_path(synthetic_store, params) -> Path:
+    return synthetic_store(params, EPISODES, frames=10)
 
 
 @pytest.fixture(scope="module")
@@ -84,6 +84,7 @@ def _relative(a: torch.Tensor, b: torch.Tensor) -> float:
     return float((a - b).norm() / b.norm().clamp_min(1e-30))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("stage,tokenizer,noise", [("base", "contact", 0.0), ("projection", "contact", 0.0),
                                                    ("base", "linear", 0.0), ("base", "contact", 3e-4)])
 def test_static_step_matches_the_reference_loss_and_gradients(setting, stage, tokenizer, noise):
@@ -115,6 +116,7 @@ def test_static_step_matches_the_reference_loss_and_gradients(setting, stage, to
         assert (float(g.norm()) == 0.0) == (float(w.norm()) == 0.0), name  # the same parameters learn
 
 
+@pytest.mark.slow
 def test_overflow_grows_the_capacities_and_reruns_the_batch(setting):
     store, model_cfg, cfg, resident, layout_for, capacities, _ = setting
     torch.manual_seed(2)
@@ -169,6 +171,7 @@ def _static_params(params: dict[str, Any]) -> dict[str, Any]:
     return p
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("static", [True, False])
 def test_a_stopped_run_resumes_to_the_uninterrupted_result(store_path, params, tmp_path, static):
     p = _static_params(params) if static else copy.deepcopy(params)
@@ -186,6 +189,7 @@ def test_a_stopped_run_resumes_to_the_uninterrupted_result(store_path, params, t
         assert resumed["capacities"] == whole["capacities"]
 
 
+@pytest.mark.slow
 def test_max_minutes_stops_with_a_complete_checkpoint(store_path, params, tmp_path):
     p = _static_params(params)
     p["train"]["max_minutes"] = 1e-9  # out of time after the first step
