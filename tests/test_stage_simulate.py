@@ -89,10 +89,11 @@ def test_dvc_pipeline_declares_simulate():
     assert "simulate" in listed and "raw.zarr" in listed
 
 
-def test_bad_contact_buffer_fails_without_output(tmp_path):
+@pytest.mark.parametrize("key", ["body_particle_contact_buffer", "body_contact_buffer"])
+def test_bad_contact_buffer_fails_without_output(tmp_path, key):
     params = load_params(*SHORT)
-    params["sim"]["body_particle_contact_buffer"] = 0
-    with pytest.raises(ValueError, match="body_particle_contact_buffer must be >= 1"):
+    params["sim"][key] = 0
+    with pytest.raises(ValueError, match=f"{key} must be >= 1"):
         simulate(params, tmp_path / "raw.zarr", tmp_path / "simulate.json", tmp_path / "memory.json")
     _no_output(tmp_path)
 

@@ -54,6 +54,8 @@ class SimConfig:
     self_contact_filter_rings: int = 2  # self-contact skips element pairs this many mesh rings apart or closer (Newton's default 2)
     body_particle_contact_buffer: int = 256  # VBD per-body list of cloth contact candidates (Newton's default 256).
     # Overflowing it is not wrong (Newton then scans all stored contacts) but slower, and prints a warning per step
+    body_contact_buffer: int = 64  # VBD per-body list of rigid body-body contacts (Newton's default 64); contacts
+    # beyond it are dropped (a cube on the table under the gripper reached 138), with a warning per step
 
     def validate(self) -> None:
         if not self.dt_s > 0:
@@ -61,8 +63,9 @@ class SimConfig:
         for name in ("substeps", "iterations", "worlds"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
-        if self.body_particle_contact_buffer < 1:
-            raise ValueError(f"body_particle_contact_buffer must be >= 1, got {self.body_particle_contact_buffer}")
+        for name in ("body_particle_contact_buffer", "body_contact_buffer"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if self.self_contact_filter_rings < 0:
             raise ValueError(f"self_contact_filter_rings must be >= 0, got {self.self_contact_filter_rings}")
         if self.settle_s < 0:

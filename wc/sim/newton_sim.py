@@ -65,6 +65,7 @@ class NewtonSimulator:
             particle_self_contact_gap=cfg.self_contact_gap_m,
             particle_topological_contact_filter_threshold=cfg.self_contact_filter_rings,
             rigid_body_particle_contact_buffer_size=cfg.body_particle_contact_buffer,
+            rigid_body_contact_buffer_size=cfg.body_contact_buffer,
         )
         self.pipeline = newton.CollisionPipeline(
             self.model, soft_contact_gap=cfg.soft_contact_gap_m, enable_rigid_soft_full_surface_contact=True
