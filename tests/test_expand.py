@@ -206,6 +206,15 @@ def test_rejected_episodes_are_counted_per_check_and_not_written(tmp_path, param
     assert r["rejections"]["not_lifted"] == r["generated"] == 2 and r["accepted"] == 0
 
 
+def test_a_passed_deadline_starts_no_batch_and_writes_whole_stores(run, tmp_path, params, store_path, model_dir):
+    p = copy.deepcopy(params)
+    p["expand"]["max_minutes"] = 1e-9
+    r = expand(p, model_dir, store_path, tmp_path / "e.zarr", tmp_path / "e.json", tmp_path / "rejected.zarr")
+    assert r["generated"] == r["attempts"] == 0 and r["stopped_early"]
+    assert TrajectoryStore(tmp_path / "e.zarr").episode_ids == [] and json.loads((tmp_path / "e.json").read_text())
+    assert not run[1]["stopped_early"]
+
+
 def test_clear_errors(tmp_path, params, store_path, model_dir):
     with pytest.raises(FileNotFoundError, match="validate stage"):
         expand(params, model_dir, tmp_path / "none.zarr", tmp_path / "o.zarr", tmp_path / "r.json")
@@ -220,6 +229,9 @@ def test_clear_errors(tmp_path, params, store_path, model_dir):
         expand(params, model_dir, store_path, tmp_path / "o.zarr", tmp_path / "r.json", tmp_path / "o.zarr")
     assert not (tmp_path / "o.zarr").exists() and not (tmp_path / "r.json").exists()
     p = copy.deepcopy(params)
+    p["expand"]["max_minutes"] = -1
+    with pytest.raises(ParamsError, match="max_minutes"):
+        load_section(p, "expand", ExpandConfig)
     p["expand"]["batch_size"] = 0
     with pytest.raises(ParamsError, match="expand: batch_size"):
         load_section(p, "expand", ExpandConfig)

@@ -7,7 +7,7 @@ cd "$(dirname "$0")/../.."
 source scripts/gpu/issue19_env.sh
 TAG=${TAG:-h100}
 MODEL=${MODEL:-/tmp/run/model}
-EXP_SETS=(--set expand.target_trajectories=${TARGET:-150} --set expand.max_attempts=${ATTEMPTS_EXPAND:-600}
+EXP_SETS=(--set expand.target_trajectories=${TARGET:-150} --set expand.max_minutes=${EXPAND_MINUTES:-3.5} --set expand.max_attempts=${ATTEMPTS_EXPAND:-600}
   --set expand.batch_size=32 --set expand.device=cuda --set validate.device=cuda --set sim.device=cuda
   --set sim.worlds=32 --set expand.pad_carry=${PAD_CARRY:-false})
 if [ "${SKIP_EXPAND:-0}" != 1 ]; then

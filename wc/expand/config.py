@@ -28,6 +28,7 @@ class ExpandConfig:
     pad_carry_radius_m: float = 0.004  # ... a cloth vertex this close to both pads of one arm is held
     device: str = "cpu"  # cpu | cuda | cuda:k | auto
     seed: int = 0
+    max_minutes: float = 0.0  # no batch started after this much wall time (0: no limit); the report says so
 
     def validate(self) -> None:
         if not self.task:
@@ -45,6 +46,8 @@ class ExpandConfig:
             raise ValueError(f"pad_carry_radius_m must be positive, got {self.pad_carry_radius_m}")
         if self.pad_carry and self.projection != "joint":
             raise ValueError(f"pad_carry needs projection 'joint', got {self.projection!r}")
+        if not self.max_minutes >= 0:
+            raise ValueError(f"max_minutes must be >= 0 (0: no limit), got {self.max_minutes}")
         if self.projection_iterations < 1:
             raise ValueError(f"projection_iterations must be >= 1, got {self.projection_iterations}")
         lo, hi = self.projection_edge_ratio

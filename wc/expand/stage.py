@@ -151,7 +151,8 @@ def expand(params: dict[str, Any], model_dir: str | Path = "models/worldcontact"
         for w in (writer, rejected_writer):
             if w is not None:
                 _copy_scene(src, w)
-        while accepted < wanted and attempts < cfg.max_attempts:
+        while accepted < wanted and attempts < cfg.max_attempts and not (
+                cfg.max_minutes > 0 and time.perf_counter() - started > 60.0 * cfg.max_minutes):
             planned: list[tuple[PlannedEpisode, SourceEpisode]] = []
             for i in range(attempts, attempts + min(cfg.batch_size, wanted - accepted, cfg.max_attempts - attempts)):
                 spec = planner.propose(task, episode_seed(cfg.seed, 0, i, SeedStream.EXPAND))
@@ -208,6 +209,7 @@ def expand(params: dict[str, Any], model_dir: str | Path = "models/worldcontact"
         "rollout_s": rollout_s,
         "model_frames_per_s": frames / rollout_s if rollout_s else None,
         "wall_s": wall,
+        "stopped_early": accepted < wanted and attempts < cfg.max_attempts,
         "trajectories_per_min": 60.0 * generated / wall,
         "accepted_per_min": 60.0 * accepted / wall,
         "coverage": planner.coverage(task),

@@ -1,0 +1,33 @@
+#!/bin/bash
+# Issue 19 in one GPU hold, as calls of at most 10 minutes (the machine is bare at every start):
+#   issue19_hold.sh data     the precompiled kernel cache (.carry/warp_cache.tar.xz, from precompile_cuda_kernels.py)
+#                            into place, the data (issue19_data.sh), then the training started in the background
+#                            (issue19_train.sh, one chunk of MAX_MINUTES; it outlives this call)
+#   issue19_hold.sh wait S   wait up to S seconds for that training; its report and model files to $OUT
+#   issue19_hold.sh finish   issue19_expand.sh on the finished model (else the partial run's best)
+cd "$(dirname "$0")/../.."
+export PYTHONPATH=/tmp/site:$PWD
+mkdir -p /tmp/run "$OUT"
+case "$1" in
+  data)
+    if [ -f .carry/warp_cache.tar.xz ]; then
+      mkdir -p ~/.cache/warp && xz -dc .carry/warp_cache.tar.xz | tar x -C ~/.cache/warp
+      echo "kernel cache: $(ls ~/.cache/warp/1.19.0 | wc -l) modules"
+    fi
+    WORLDS=${WORLDS:-8} WORKERS=${WORKERS:-6} bash scripts/gpu/issue19_data.sh
+    CKPT_OUT=/tmp/run/ckpt setsid nohup bash scripts/gpu/issue19_train.sh > /tmp/run/train_bg.log 2>&1 < /dev/null &
+    echo $! > /tmp/run/train_bg.pid
+    sleep 20; tail -3 /tmp/run/ckpt/train.log 2>/dev/null ;;
+  wait)
+    end=$((SECONDS + ${2:-500}))
+    while kill -0 "$(cat /tmp/run/train_bg.pid)" 2>/dev/null && [ $SECONDS -lt $end ]; do sleep 10; done
+    tail -4 /tmp/run/ckpt/train.log; tail -3 /tmp/run/train_bg.log
+    cp /tmp/run/ckpt/train.json /tmp/run/ckpt/train_loss.csv "$OUT"/ 2>/dev/null
+    for m in /tmp/run/model /tmp/run/model.partial; do
+      [ -f $m/model.safetensors ] && { cp $m/model.safetensors $m/model.json "$OUT"/; echo "model from $m"; break; }
+    done ;;
+  finish)
+    [ -f /tmp/run/model/model.safetensors ] && model=/tmp/run/model || model=/tmp/run/model.partial
+    MODEL=$model bash scripts/gpu/issue19_expand.sh ;;
+  *) echo "usage: $0 data | wait SECONDS | finish" >&2; exit 2 ;;
+esac
