@@ -1,7 +1,10 @@
 #!/bin/bash
-# Issue 19 in one GPU hold, as calls of at most 10 minutes (the machine is bare at every start):
-#   issue19_hold.sh data     the precompiled kernel cache (.carry/warp_cache.tar.xz, from precompile_cuda_kernels.py)
-#                            into place, the data (issue19_data.sh), then the training started in the background
+# Issue 19 in one GPU hold, as calls of at most 10 minutes (the machine is bare at every start).
+# CUDA kernels: KERNELS (default: the committed scripts/gpu/kernel_cache/ build for warp 1.19.0, newton 1.8.0, sm_90,
+# from precompile_cuda_kernels.py); without them the first simulate compiles for ~13 min.
+# Several simulate processes share the GPU (WORKERS, one task each): 4 gave 4.1x and 8 gave 5.6x the episodes per
+# minute of one (reports/gpu/simulate_workers_h100.json).
+#   issue19_hold.sh data     the precompiled CUDA kernels into place, the data (issue19_data.sh), then the training started in the background
 #                            (issue19_train.sh, one chunk of MAX_MINUTES; it outlives this call)
 #   issue19_hold.sh wait S   wait up to S seconds for that training; its report and model files to $OUT
 #   issue19_hold.sh finish   issue19_expand.sh on the finished model (else the partial run's best)
@@ -10,11 +13,14 @@ export PYTHONPATH=/tmp/site:$PWD
 mkdir -p /tmp/run "$OUT"
 case "$1" in
   data)
-    if [ -f .carry/warp_cache.tar.xz ]; then
-      mkdir -p ~/.cache/warp && xz -dc .carry/warp_cache.tar.xz | tar x -C ~/.cache/warp
+    kernels=${KERNELS:-scripts/gpu/kernel_cache/warp-1.19.0_newton-1.8.0_sm90.tar.xz}
+    if [ -f "$kernels" ]; then
+      mkdir -p ~/.cache/warp && xz -dc "$kernels" | tar x -C ~/.cache/warp --skip-old-files
       echo "kernel cache: $(ls ~/.cache/warp/1.19.0 | wc -l) modules"
+    else
+      echo "WARNING: no precompiled CUDA kernels at $kernels: expect ~13 min of compilation first" >&2
     fi
-    WORLDS=${WORLDS:-8} WORKERS=${WORKERS:-6} bash scripts/gpu/issue19_data.sh
+    WORLDS=${WORLDS:-8} WORKERS=${WORKERS:-6} SIM_MINUTES=${SIM_MINUTES:-4} bash scripts/gpu/issue19_data.sh
     CKPT_OUT=/tmp/run/ckpt setsid nohup bash scripts/gpu/issue19_train.sh > /tmp/run/train_bg.log 2>&1 < /dev/null &
     echo $! > /tmp/run/train_bg.pid
     sleep 20; tail -3 /tmp/run/ckpt/train.log 2>/dev/null ;;

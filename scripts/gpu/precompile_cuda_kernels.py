@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 import shutil
 import sys
 import tempfile
@@ -31,6 +32,9 @@ def main() -> None:
     parser.add_argument("--params", default="params.yaml")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
     parser.add_argument("--task", default="lift_handle")
+    parser.add_argument("--extra-block-dims", default="soft_(edge|face)_contacts=128", metavar="REGEX=N[,REGEX=N]",
+                        help="block sizes the GPU run launches with beside the CPU run's (Newton's soft contacts: 128 "
+                             "on CUDA)")
     parser.add_argument("--threads", type=int, default=os.cpu_count() or 1, help="modules compiled at once")
     args = parser.parse_args()
 
@@ -38,27 +42,25 @@ def main() -> None:
 
     wp.config.kernel_cache_dir = str(Path(args.cache).resolve())
     wp.init()
+    record_launches()
     run_cpu_batch(args.params, args.overrides, args.task)
 
-    from warp._src.context import user_modules
+    variants = sorted(launched_variants(args.extra_block_dims), key=lambda mv: mv[0].name)
+    print(f"compiling {len(variants)} module variants for sm_{args.arch} ...", flush=True)
 
-    loaded = [m for m in user_modules.values() if m.execs]
-    print(f"compiling {len(loaded)} loaded modules for sm_{args.arch} ...", flush=True)
-
-    from warp._src.context import _get_module_artifact_path
-
-    def compile_one(module) -> tuple[str, float]:  # noqa: ANN001
+    def compile_one(variant: tuple[object, int]) -> tuple[str, float]:
+        module, block_dim = variant
         t0 = time.perf_counter()
         try:
-            if Path(_get_module_artifact_path(module, None, args.arch, None, False)).exists():
-                return module.name, 0.0  # already in the cache
-            wp.compile_aot_module(module, arch=args.arch, use_ptx=False)
+            module.get_module_hash(block_dim)
+            module._compile(None, None, output_arch=args.arch, use_ptx=False,  # noqa: SLF001 - per-block_dim AOT
+                            options=module.resolve_options(wp.config, block_dim=block_dim))
         except Exception as error:  # noqa: BLE001 - a module the GPU will compile itself
-            print(f"  {module.name}: skipped ({error})", flush=True)
-        return module.name, time.perf_counter() - t0
+            print(f"  {module.name} (block {block_dim}): skipped ({error})", flush=True)
+        return f"{module.name} (block {block_dim})", time.perf_counter() - t0
 
     with ThreadPoolExecutor(args.threads) as pool:
-        for name, seconds in pool.map(compile_one, loaded):
+        for name, seconds in pool.map(compile_one, variants):
             print(f"  {name}: {seconds:.1f} s", flush=True)
     cache = Path(wp.config.kernel_cache_dir)
     for cpu_file in [*cache.rglob("*.o"), *cache.rglob("*.cpp")]:
@@ -67,6 +69,34 @@ def main() -> None:
         shutil.rmtree(partial, ignore_errors=True)
     cubins = list(cache.rglob(f"*.sm{args.arch}.cubin"))
     print(f"{len(cubins)} cubins in {cache} ({sum(f.stat().st_size for f in cubins) / 2**20:.1f} MiB)")
+
+
+_LAUNCHED: set[tuple[object, int | None]] = set()
+
+
+def record_launches() -> None:
+    """Remember the (module, block_dim) of every wp.launch from now on (the CUDA variants the GPU will load)."""
+    import warp as wp
+    import warp._src.context as context
+
+    original = context.launch
+
+    def recording(kernel, *args, block_dim: int | None = None, **kwargs):  # noqa: ANN001, ANN002, ANN003, ANN202
+        _LAUNCHED.add((kernel.module, block_dim))
+        return original(kernel, *args, block_dim=block_dim, **kwargs)
+
+    context.launch = wp.launch = recording
+
+
+def launched_variants(extra: str) -> set[tuple[object, int]]:
+    """(module, block_dim) to compile: each launched module at its launches' block sizes (default: the module's)
+    and at the extra sizes whose pattern matches its name."""
+    rules = [(re.compile(r.split("=")[0]), int(r.split("=")[1])) for r in extra.split(",") if r]
+    variants = set()
+    for module, block_dim in _LAUNCHED:
+        variants.add((module, block_dim or module.options["block_dim"]))
+        variants.update((module, n) for pattern, n in rules if pattern.search(module.name))
+    return variants
 
 
 def run_cpu_batch(params_path: str, overrides: list[str], task: str) -> None:
