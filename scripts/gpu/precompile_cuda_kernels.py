@@ -16,12 +16,8 @@ from __future__ import annotations
 
 import argparse
 import os
-import re
-import shutil
 import sys
 import tempfile
-import time
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 
@@ -42,66 +38,22 @@ def main() -> None:
 
     wp.config.kernel_cache_dir = str(Path(args.cache).resolve())
     wp.init()
-    record_launches()
-    run_cpu_batch(args.params, args.overrides, args.task)
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+    from wc.sim.cuda_kernels import compile_variants, keep_cuda_only, module_variants, recorded_launches
 
-    variants = sorted(launched_variants(args.extra_block_dims), key=lambda mv: mv[0].name)
+    with recorded_launches() as launched:
+        run_cpu_batch(args.params, args.overrides, args.task)
+    variants = module_variants(launched, args.extra_block_dims)
     print(f"compiling {len(variants)} module variants for sm_{args.arch} ...", flush=True)
-
-    def compile_one(variant: tuple[object, int]) -> tuple[str, float]:
-        module, block_dim = variant
-        t0 = time.perf_counter()
-        try:
-            module.get_module_hash(block_dim)
-            module._compile(None, None, output_arch=args.arch, use_ptx=False,  # noqa: SLF001 - per-block_dim AOT
-                            options=module.resolve_options(wp.config, block_dim=block_dim))
-        except Exception as error:  # noqa: BLE001 - a module the GPU will compile itself
-            print(f"  {module.name} (block {block_dim}): skipped ({error})", flush=True)
-        return f"{module.name} (block {block_dim})", time.perf_counter() - t0
-
-    with ThreadPoolExecutor(args.threads) as pool:
-        for name, seconds in pool.map(compile_one, variants):
-            print(f"  {name}: {seconds:.1f} s", flush=True)
+    compile_variants(variants, args.arch, args.threads)
     cache = Path(wp.config.kernel_cache_dir)
-    for cpu_file in [*cache.rglob("*.o"), *cache.rglob("*.cpp")]:
-        cpu_file.unlink()
-    for partial in cache.glob("*_p[0-9]*_t*"):  # a killed compile's leftovers
-        shutil.rmtree(partial, ignore_errors=True)
+    keep_cuda_only(cache)
     cubins = list(cache.rglob(f"*.sm{args.arch}.cubin"))
     print(f"{len(cubins)} cubins in {cache} ({sum(f.stat().st_size for f in cubins) / 2**20:.1f} MiB)")
 
 
-_LAUNCHED: set[tuple[object, int | None]] = set()
-
-
-def record_launches() -> None:
-    """Remember the (module, block_dim) of every wp.launch from now on (the CUDA variants the GPU will load)."""
-    import warp as wp
-    import warp._src.context as context
-
-    original = context.launch
-
-    def recording(kernel, *args, block_dim: int | None = None, **kwargs):  # noqa: ANN001, ANN002, ANN003, ANN202
-        _LAUNCHED.add((kernel.module, block_dim))
-        return original(kernel, *args, block_dim=block_dim, **kwargs)
-
-    context.launch = wp.launch = recording
-
-
-def launched_variants(extra: str) -> set[tuple[object, int]]:
-    """(module, block_dim) to compile: each launched module at its launches' block sizes (default: the module's)
-    and at the extra sizes whose pattern matches its name."""
-    rules = [(re.compile(r.split("=")[0]), int(r.split("=")[1])) for r in extra.split(",") if r]
-    variants = set()
-    for module, block_dim in _LAUNCHED:
-        variants.add((module, block_dim or module.options["block_dim"]))
-        variants.update((module, n) for pattern, n in rules if pattern.search(module.name))
-    return variants
-
-
 def run_cpu_batch(params_path: str, overrides: list[str], task: str) -> None:
     """One simulate batch of `task` on the CPU (two worlds, two episodes), written to a throwaway store."""
-    sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
     from stages.simulate import main as simulate
 
     with tempfile.TemporaryDirectory() as tmp:
