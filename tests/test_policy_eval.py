@@ -23,7 +23,7 @@ from wc.policy.dataset_config import DatasetConfig
 from wc.policy.finetune import SUMMARY_FILE
 from wc.policy_eval.config import PolicyEvalConfig
 from wc.policy_eval.env import WorldContactLiftEnv
-from wc.policy_eval.rollout import OracleActor, run_episode
+from wc.policy_eval.closed_loop import OracleActor, run_episode
 from wc.policy_eval.stage import policy_dirs, run
 from wc.policy_eval.success import LiftHoldMonitor, first_success, hold_frames
 

@@ -16,7 +16,7 @@ from safetensors.torch import load_file
 from stages.train import run
 from tests.conftest import default_params
 from tests.synthetic_store import write_synthetic_store
-from wc.train.pretrained import resolve_checkpoint
+from wc.train.warm_start import resolve_checkpoint
 
 # every test uses `pretrained`, a stage run from scratch
 pytestmark = pytest.mark.slow

@@ -6,7 +6,7 @@ from wc.expand.config import ExpandConfig
 from wc.expand.contact import ContactProjectedPredictor, ContactProjection
 from wc.expand.plan import (NoSourceEpisodesError, PlannedEpisode, SourceEpisode, check_clear_at_start, pick_parent,
                             plan_episode, presettle_state, source_episodes)
-from wc.expand.rollout import Rollout, finite_rollout, rollout_batch
+from wc.expand.batched_rollout import Rollout, finite_rollout, rollout_batch
 from wc.expand.stage import expand, verdict
 from wc.expand.transform import check_on_table, planar_transform
 

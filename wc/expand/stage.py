@@ -5,7 +5,7 @@ Each generated episode starts from a source episode's settled frame 0 (parents o
 turn, else all of them), moved rigidly on the table (wc.expand.transform); the coverage planner proposes its
 cell, speed and amplitude, the task program plans the right arm's actions against the moved state
 (wc.expand.plan; a plan whose frame 0 already penetrates the start posture is infeasible), and WorldContact
-rolls the batch out autoregressively from v = 0 under the prescribed link and table poses (wc.expand.rollout),
+rolls the batch out autoregressively from v = 0 under the prescribed link and table poses (wc.expand.batched_rollout),
 with a projection after every step (`projection`: edges and contacts together, wc.expand.constraints, or the
 contact push alone, wc.expand.contact). Every
 rollout then faces the source data's checks (wc.validate.predicates, in their order, plus the task's own
@@ -35,7 +35,7 @@ from wc.expand.config import ExpandConfig
 from wc.expand.constraints import JointStepProjection
 from wc.expand.contact import ContactProjectedPredictor
 from wc.expand.plan import PlannedEpisode, SourceEpisode, pick_parent, plan_episode, source_episodes
-from wc.expand.rollout import Rollout, rollout_batch
+from wc.expand.batched_rollout import Rollout, rollout_batch
 from wc.model.layout import scene_layout
 from wc.reports import environment_info, write_json_atomic
 from wc.scene.config import SceneConfig

@@ -26,7 +26,7 @@ from wc.policy.pretrained import checkpoint_weights
 from wc.policy_eval.config import PolicyEvalConfig
 from wc.policy_eval.env import WorldContactLiftEnv
 from wc.policy_eval.plots import plot_success_rates, write_success_table
-from wc.policy_eval.rollout import PolicyActor, run_episode
+from wc.policy_eval.closed_loop import PolicyActor, run_episode
 from wc.policy_eval.videos import write_mp4
 from wc.reports import environment_info, replace_dir, write_json_atomic
 

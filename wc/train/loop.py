@@ -39,7 +39,7 @@ from wc.train.events import window_weights
 from wc.train.evaluation import rollout_error, segment_loss, validation_losses
 from wc.train.selection import selection_score
 from wc.train.noise import noisy_state
-from wc.train.pretrained import pretrained_model
+from wc.train.warm_start import pretrained_model
 from wc.train.resident import ResidentWindows
 from wc.train.schedule import learning_rate
 from wc.train.static_step import StaticTrainer, StepSettings, make_optimizer, set_learning_rate
