@@ -1,0 +1,59 @@
+"""The headline figures (wc/summary.py): read from the stage reports, missing ones named, the one DVC metrics file."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import yaml
+
+from stages.summary import main
+from tests.conftest import ROOT
+from wc.summary import HEADLINES, headline_figures, write_summary
+
+
+def _reports(tmp_path):
+    reports = tmp_path / "reports"
+    (reports / "gpu").mkdir(parents=True)
+    (reports / "expand.json").write_text(json.dumps({"generated": 40, "accepted": 31, "trajectories_per_min": 12.5}))
+    (reports / "metrics.json").write_text(json.dumps({"methods": {"worldcontact": {"position_mse_m2": 2e-4},
+                                                                  "constant_velocity": {"position_mse_m2": 6e-4}}}))
+    (reports / "gpu" / "run_h100.json").write_text(json.dumps({"what": "a GPU run\n of something", "x": 1}))
+    return reports
+
+
+def test_figures_come_from_the_reports_and_missing_ones_are_none(tmp_path):
+    figures = headline_figures(_reports(tmp_path))
+    assert set(figures) == {h.key for h in HEADLINES}
+    assert figures["expand.accepted"] == 31 and figures["expand.generated"] == 40
+    assert figures["evaluate.worldcontact_position_mse_m2"] == 2e-4
+    assert figures["train.best_val_loss"] is None and figures["teacher_check.precision"] is None
+
+
+def test_summary_writes_the_metric_and_the_results_page(tmp_path, capsys):
+    reports = _reports(tmp_path)
+    main(["--reports", str(reports), "--headline", str(reports / "headline.json"),
+          "--results", str(reports / "RESULTS.md")])
+    assert json.loads((reports / "headline.json").read_text())["expand.trajectories_per_min"] == 12.5
+    page = (reports / "RESULTS.md").read_text()
+    assert "| generated episodes accepted | 31 |" in page and "| `run_h100.json` | a GPU run of something |" in page
+    assert "missing: " in capsys.readouterr().out
+
+
+def test_a_corrupt_report_is_named(tmp_path):
+    reports = _reports(tmp_path)
+    (reports / "train.json").write_text("{not json")
+    with pytest.raises(ValueError, match="train.json is not valid JSON"):
+        write_summary(reports, reports / "h.json", reports / "R.md")
+    assert not (reports / "h.json").exists()
+
+
+def test_headline_json_is_the_pipelines_only_metrics_file_and_the_summary_reads_every_report():
+    stages = yaml.safe_load((ROOT / "dvc.yaml").read_text())["stages"]
+    with_metrics = {name: s.get("do", s)["metrics"] for name, s in stages.items() if "metrics" in s.get("do", s)}
+    assert list(with_metrics) == ["summary"]
+    assert [next(iter(m)) for m in with_metrics["summary"]] == ["reports/headline.json"]
+    deps = set(stages["summary"]["deps"])
+    assert {f"reports/{h.report}" for h in HEADLINES} <= deps
+    outs = {next(iter(o)) if isinstance(o, dict) else o for s in stages.values() for o in s.get("do", s).get("outs", [])}
+    assert {f"reports/{h.report}" for h in HEADLINES} <= outs  # each is some stage's output

@@ -1,0 +1,117 @@
+"""The pipeline's headline figures, read from the stage reports: `reports/headline.json` (the one DVC metrics file, so
+`dvc metrics show` is a table a person can read) and `reports/RESULTS.md` (those figures, plus the GPU reports in
+`reports/gpu/` with what each one measured). Written from the JSON, never by hand."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from wc.atomic import write_atomic
+from wc.reports import write_json_atomic
+
+
+@dataclass(frozen=True)
+class Headline:
+    """One figure: its key in headline.json, the report it comes from and the dotted path to it there."""
+
+    key: str
+    report: str
+    path: str
+    label: str
+
+
+HEADLINES = (
+    Headline("simulate.accepted", "simulate.json", "accepted", "source episodes accepted"),
+    Headline("simulate.episodes", "simulate.json", "episodes", "source episodes simulated"),
+    Headline("simulate.episodes_per_min", "simulate.json", "episodes_per_min", "simulated episodes per minute"),
+    Headline("train.best_val_loss", "train.json", "best_val_loss", "WorldContact best validation loss"),
+    Headline("train.constant_velocity_val_loss", "train.json", "constant_velocity_val_loss",
+             "constant velocity, same validation windows"),
+    Headline("train.rollout_position_mse_m2", "train.json", "rollout_position_mse_m2",
+             "held-out rollout position MSE (m²), training's selection"),
+    Headline("evaluate.worldcontact_position_mse_m2", "metrics.json", "methods.worldcontact.position_mse_m2",
+             "WorldContact held-out position MSE (m²)"),
+    Headline("evaluate.constant_velocity_position_mse_m2", "metrics.json",
+             "methods.constant_velocity.position_mse_m2", "constant velocity held-out position MSE (m²)"),
+    Headline("evaluate.worldcontact_penetration_rate_pct", "metrics.json",
+             "methods.worldcontact.penetration_rate_pct", "WorldContact penetration rate (%)"),
+    Headline("expand.generated", "expand.json", "generated", "generated episodes"),
+    Headline("expand.accepted", "expand.json", "accepted", "generated episodes accepted"),
+    Headline("expand.trajectories_per_min", "expand.json", "trajectories_per_min", "generated trajectories per minute"),
+    Headline("teacher_check.plans", "teacher_check.json", "plans", "teacher check: plans replayed in Newton"),
+    Headline("teacher_check.agreement", "teacher_check.json", "agreement", "teacher check: verdicts agree"),
+    Headline("teacher_check.precision", "teacher_check.json", "precision",
+             "teacher check: WorldContact-accepted plans Newton accepts"),
+    Headline("dataset.generated_episodes", "dataset.json", "generated_episodes", "generated episodes in the dataset"),
+    Headline("policy.success_rate_source", "policy.json", "success_rate.source", "policy success, source data"),
+    Headline("policy.success_rate_expanded", "policy.json", "success_rate.expanded", "policy success, expanded data"),
+)
+
+
+def _lookup(data: Any, path: str) -> Any:
+    for part in path.split("."):
+        if not isinstance(data, dict) or part not in data:
+            return None
+        data = data[part]
+    return None if isinstance(data, (dict, list)) else data
+
+
+def headline_figures(reports: Path) -> dict[str, Any]:
+    """{key: value} for every HEADLINES entry; None where its report or key is missing. A report that exists but
+    is not JSON raises ValueError naming it."""
+    figures: dict[str, Any] = {}
+    cache: dict[str, Any] = {}
+    for h in HEADLINES:
+        if h.report not in cache:
+            path = reports / h.report
+            try:
+                cache[h.report] = json.loads(path.read_text()) if path.is_file() else None
+            except json.JSONDecodeError as error:
+                raise ValueError(f"{path} is not valid JSON ({error}): rerun its stage") from error
+        figures[h.key] = _lookup(cache[h.report], h.path) if cache[h.report] is not None else None
+    return figures
+
+
+def _fmt(value: Any) -> str:
+    if value is None:
+        return "–"
+    if isinstance(value, float):
+        return f"{value:.3g}"
+    return str(value)
+
+
+def gpu_reports(reports: Path) -> list[tuple[str, str]]:
+    """(file name, what it measured) for each JSON report in reports/gpu/ (its `what` field, else its `device`)."""
+    rows = []
+    for path in sorted((reports / "gpu").glob("*.json")):
+        try:
+            data = json.loads(path.read_text())
+        except (json.JSONDecodeError, UnicodeDecodeError):
+            continue
+        what = data.get("what") if isinstance(data, dict) else None
+        rows.append((path.name, " ".join(str(what).split())[:220] if what else ""))
+    return rows
+
+
+def results_markdown(figures: dict[str, Any], gpu: list[tuple[str, str]]) -> str:
+    """reports/RESULTS.md: the headline table of the last `dvc repro` and the list of GPU reports."""
+    lines = ["# Results", "", "Written by `python -m stages.summary` from the stage reports (`reports/*.json`) of the",
+             "last `dvc repro` (the small CPU default unless params say otherwise); do not edit by hand.", "",
+             "| figure | value | report |", "|---|---|---|"]
+    lines += [f"| {h.label} | {_fmt(figures.get(h.key))} | `{h.report}` `{h.path}` |" for h in HEADLINES]
+    lines += ["", "## GPU runs (`reports/gpu/`)", "", "Each JSON report holds its command, device and versions.", "",
+              "| report | what it measured |", "|---|---|"]
+    lines += [f"| `{name}` | {what} |" for name, what in gpu]
+    return "\n".join(lines) + "\n"
+
+
+def write_summary(reports: Path, headline: Path, results: Path) -> dict[str, Any]:
+    """Write headline.json and RESULTS.md (atomically); returns the figures."""
+    figures = headline_figures(reports)
+    write_json_atomic(headline, figures)
+    text = results_markdown(figures, gpu_reports(reports))
+    write_atomic(results, lambda p: p.write_text(text))
+    return figures
