@@ -19,6 +19,7 @@ def _reports(tmp_path):
     (reports / "metrics.json").write_text(json.dumps({"methods": {"worldcontact": {"position_mse_m2": 2e-4},
                                                                   "constant_velocity": {"position_mse_m2": 6e-4}}}))
     (reports / "gpu" / "run_h100.json").write_text(json.dumps({"what": "a GPU run\n of something", "x": 1}))
+    (reports / "gpu" / "other_h100.json").write_text(json.dumps({"device": "cuda", "accepted": 7, "rate": 0.25}))
     return reports
 
 
@@ -37,6 +38,7 @@ def test_summary_writes_the_metric_and_the_results_page(tmp_path, capsys):
     assert json.loads((reports / "headline.json").read_text())["expand.trajectories_per_min"] == 12.5
     page = (reports / "RESULTS.md").read_text()
     assert "| generated episodes accepted | 31 |" in page and "| `run_h100.json` | a GPU run of something |" in page
+    assert "| `other_h100.json` | accepted 7, rate 0.25 |" in page
     assert "missing: " in capsys.readouterr().out
 
 

@@ -83,8 +83,17 @@ def _fmt(value: Any) -> str:
     return str(value)
 
 
+def _scalars(data: Any, most: int = 6) -> str:
+    """The first `most` top-level numbers of a report, as `key value` (for a report without a `what` field)."""
+    if not isinstance(data, dict):
+        return ""
+    pairs = [(k, v) for k, v in data.items() if isinstance(v, (int, float)) and not isinstance(v, bool)]
+    return ", ".join(f"{k} {_fmt(v)}" for k, v in pairs[:most])
+
+
 def gpu_reports(reports: Path) -> list[tuple[str, str]]:
-    """(file name, what it measured) for each JSON report in reports/gpu/ (its `what` field, else its `device`)."""
+    """(file name, what it measured) for each JSON report in reports/gpu/: its `what` field, else its first
+    top-level numbers."""
     rows = []
     for path in sorted((reports / "gpu").glob("*.json")):
         try:
@@ -92,7 +101,7 @@ def gpu_reports(reports: Path) -> list[tuple[str, str]]:
         except (json.JSONDecodeError, UnicodeDecodeError):
             continue
         what = data.get("what") if isinstance(data, dict) else None
-        rows.append((path.name, " ".join(str(what).split())[:220] if what else ""))
+        rows.append((path.name, " ".join(str(what).split())[:220] if what else _scalars(data)))
     return rows
 
 
