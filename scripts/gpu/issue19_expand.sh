@@ -7,9 +7,6 @@ cd "$(dirname "$0")/../.."
 source scripts/gpu/issue19_env.sh
 TAG=${TAG:-h100}
 MODEL=${MODEL:-/tmp/run/model}
-EXP_SETS=(--set expand.target_trajectories=${TARGET:-150} --set expand.max_minutes=${EXPAND_MINUTES:-3.5} --set expand.max_attempts=${ATTEMPTS_EXPAND:-600}
-  --set expand.batch_size=32 --set expand.device=cuda --set validate.device=cuda --set sim.device=cuda
-  --set sim.worlds=32 --set expand.pad_carry=${PAD_CARRY:-false})
 if [ "${SKIP_EXPAND:-0}" != 1 ]; then
 timeout ${EXPAND_TIMEOUT:-300} python -m stages.expand --params params.yaml "${EXP_SETS[@]}" --model "$MODEL" \
   --store /tmp/run/store.zarr --out /tmp/run/expanded_$TAG.zarr --rejected-out /tmp/run/rejected_$TAG.zarr \

@@ -1,0 +1,41 @@
+"""The GPU scripts' parameter overrides are valid against params.yaml (a wrong key costs a GPU call, as
+`validate.device` once did): each group of `--set` arguments in scripts/gpu/issue19_env.sh is read and its sections
+built, with the scripts' defaults."""
+
+from __future__ import annotations
+
+import subprocess
+
+import pytest
+
+from tests.conftest import ROOT
+from wc.agent.runner import AgentConfig
+from wc.config import load_section, read_params
+from wc.expand import ExpandConfig
+from wc.sim.config import SimConfig
+from wc.train.config import TrainConfig
+from wc.validate.config import ValidateConfig
+
+GROUPS = {"SIM_SETS": [("sim", SimConfig), ("agent", AgentConfig), ("validate", ValidateConfig)],
+          "VAL_SETS": [("validate", ValidateConfig)],
+          "TRAIN_SETS": [("train", TrainConfig)],
+          "EXP_SETS": [("expand", ExpandConfig), ("validate", ValidateConfig), ("sim", SimConfig)]}
+
+
+def _overrides(group: str) -> list[str]:
+    words = subprocess.run(["bash", "-c", f'source scripts/gpu/issue19_env.sh >/dev/null; printf "%s\\n" "${{{group}[@]}}"'],
+                           cwd=ROOT, capture_output=True, text=True, check=True).stdout.splitlines()
+    assert words and words[0] == "--set", (group, words[:3])
+    pairs = [words[i + 1] for i, w in enumerate(words) if w == "--set"]
+    assert len(pairs) * 2 == len(words), f"{group}: every value follows a --set"
+    return pairs
+
+
+@pytest.mark.parametrize("group", sorted(GROUPS))
+def test_issue19_overrides_are_valid_params(group):
+    params = read_params(ROOT / "params.yaml", _overrides(group))
+    for section, cls in GROUPS[group]:
+        load_section(params, section, cls)
+    if group == "TRAIN_SETS":
+        train = load_section(params, "train", TrainConfig)
+        assert train.device == "cuda" and train.select_by == "rollout" and train.input_noise_m > 0
