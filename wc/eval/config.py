@@ -5,6 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
+from wc.devices import check_device_name
+
 MethodKind = Literal["worldcontact", "baseline", "zero_motion", "constant_velocity", "newton"]
 CHECKPOINT_KINDS = ("worldcontact", "baseline")
 NEWTON_KEYS = ("iterations", "substeps", "cloth_vertices_scale")  # settings only kind newton takes
@@ -67,5 +69,4 @@ class EvaluateConfig:
             raise ValueError(f"chart_max_cases must be >= 1 or null (all), got {self.chart_max_cases}")
         if not self.methods:
             raise ValueError("methods is empty: name at least one method to evaluate")
-        if not (self.device in ("cpu", "cuda", "auto") or self.device.startswith("cuda:")):
-            raise ValueError(f"device must be cpu, cuda, cuda:k or auto, got {self.device!r}")
+        check_device_name(self.device)

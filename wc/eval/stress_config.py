@@ -6,6 +6,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
+from wc.devices import check_device_name
+
 OVERRIDABLE = ("tasks", "sim")  # a case may change the task programs and the physics, not the scene meshes
 
 
@@ -51,8 +53,7 @@ class VideoConfig:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if not self.baselines:
             raise ValueError("baselines must name at least one method")
-        if not (self.device in ("cpu", "cuda", "auto") or self.device.startswith("cuda:")):
-            raise ValueError(f"device must be cpu, cuda, cuda:k or auto, got {self.device!r}")
+        check_device_name(self.device)
 
 
 @dataclass(frozen=True)
@@ -87,8 +88,7 @@ class StressConfig:
                 raise ValueError(f"video.method {self.video.method!r} is not one of methods {list(self.methods)}")
         if self.video.case not in self.cases:
             raise ValueError(f"video.case {self.video.case!r} is not one of cases {sorted(self.cases)}")
-        if not (self.device in ("cpu", "cuda", "auto") or self.device.startswith("cuda:")):
-            raise ValueError(f"device must be cpu, cuda, cuda:k or auto, got {self.device!r}")
+        check_device_name(self.device)
 
     def case_task(self, name: str) -> str:
         return self.cases[name].task or self.task

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from wc.devices import check_device_name
+
 Range = tuple[float, float]
 
 
@@ -53,5 +55,4 @@ class ExpandConfig:
         lo, hi = self.projection_edge_ratio
         if not 0 < lo <= 1 <= hi:
             raise ValueError(f"projection_edge_ratio must satisfy 0 < min <= 1 <= max, got {self.projection_edge_ratio}")
-        if not (self.device in ("cpu", "cuda", "auto") or self.device.startswith("cuda:")):
-            raise ValueError(f"device must be cpu, cuda, cuda:k or auto, got {self.device!r}")
+        check_device_name(self.device)

@@ -12,6 +12,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
+from wc.devices import check_device_name
+
 POLICY_TYPES = ("act", "pi05")
 NORMALIZATION_MODES = ("IDENTITY", "MEAN_STD", "MIN_MAX", "QUANTILES", "QUANTILE10")
 FEATURE_TYPES = ("VISUAL", "STATE", "ACTION")
@@ -75,8 +77,7 @@ class PolicyConfig:
             raise ValueError("policy.weight_decay and policy.grad_clip_norm must be >= 0")
         if self.n_action_steps > self.chunk_size:
             raise ValueError(f"policy.n_action_steps ({self.n_action_steps}) exceeds chunk_size ({self.chunk_size})")
-        if not (self.device == "cpu" or self.device.startswith("cuda")):
-            raise ValueError(f"policy.device must be cpu, cuda or cuda:k, got {self.device!r}")
+        check_device_name(self.device, "policy.device", allow_auto=False)
         if self.type == "pi05" and not self.tokenizer_path:
             raise ValueError("policy.tokenizer_path must name a local PaliGemma tokenizer directory for pi05")
         for key, mode in (self.normalization or {}).items():

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from wc.devices import check_device_name
 from wc.seeds import SeedStream, stream_range
 
 POLICY_SEEDS = stream_range(SeedStream.POLICY_EVAL)  # trial episode seeds live here, apart from simulate's and expand's
@@ -39,5 +40,4 @@ class PolicyEvalConfig:
             raise ValueError(f"max_steps must be >= 1 or null, got {self.max_steps}")
         if self.videos < 0:
             raise ValueError(f"videos must be >= 0, got {self.videos}")
-        if self.device != "auto" and self.device != "cpu" and not self.device.startswith("cuda"):
-            raise ValueError(f"device must be cpu, cuda[:k] or auto, got {self.device!r}")
+        check_device_name(self.device)

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from wc.devices import check_device_name
+
 
 @dataclass(frozen=True)
 class RenderConfig:
@@ -25,5 +27,4 @@ class RenderConfig:
             raise ValueError(f"cameras must be distinct names, got {list(self.cameras)}")
         if self.tasks is not None and not self.tasks:
             raise ValueError("tasks must list at least one task, or be null for every episode")
-        if self.device != "auto" and self.device != "cpu" and not self.device.startswith("cuda"):
-            raise ValueError(f"device must be cpu, cuda[:k] or auto, got {self.device!r}")
+        check_device_name(self.device)

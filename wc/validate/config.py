@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from wc.devices import check_device_name
+
 Vec3 = tuple[float, float, float]
 
 
@@ -38,8 +40,7 @@ class ValidateConfig:
         for name in ("val_per_task", "test_per_task", "split_seed"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"validate.{name} must be >= 0, got {getattr(self, name)}")
-        if not (self.device in ("cpu", "auto") or self.device.startswith("cuda")):
-            raise ValueError(f"validate.device must be cpu, cuda[:N] or auto, got {self.device!r}")
+        check_device_name(self.device, "validate.device")
         if len(self.workspace_min_m) != 3 or len(self.workspace_max_m) != 3:
             raise ValueError("validate.workspace_min_m and workspace_max_m need 3 values (x, y, z)")
         if not all(lo < hi for lo, hi in zip(self.workspace_min_m, self.workspace_max_m)):
