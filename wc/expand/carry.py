@@ -14,11 +14,8 @@ import torch
 from torch import Tensor
 
 from wc.scene.scene import Scene
-from wc.sim.kinematic import quat_rotate
+from wc.sim.kinematic import quat_conjugate, quat_rotate
 from wc.validate.predicates import OPENING_COLUMNS, box_signed_distance, cloth_rows, finger_pad_boxes
-
-CONJUGATE = np.array([-1.0, -1.0, -1.0, 1.0])
-
 
 def held_between_pads(scene: Scene, x: np.ndarray, link_poses: np.ndarray, radius_m: float) -> np.ndarray:
     """(B, n) bool: cloth points x (B, n, 3) within radius_m of both pad boxes of one arm posed by link_poses
@@ -39,7 +36,7 @@ def finger_motion(scene: Scene, x: np.ndarray, before: np.ndarray, after: np.nda
     for side in OPENING_COLUMNS:
         cols = [scene.link_names.index(f"{side}_{f}") for f in ("finger_a", "finger_b")]
         p0, p1 = before[:, cols].astype(np.float64), after[:, cols].astype(np.float64)  # (B, 2, 7)
-        local = quat_rotate(p0[:, :, None, 3:] * CONJUGATE, x[:, None] - p0[:, :, None, :3])  # (B, 2, n, 3)
+        local = quat_rotate(quat_conjugate(p0[:, :, None, 3:]), x[:, None] - p0[:, :, None, :3])  # (B, 2, n, 3)
         world = (quat_rotate(p1[:, :, None, 3:], local) + p1[:, :, None, :3]).mean(axis=1)
         dist = np.linalg.norm(x[:, None] - p0[:, :, None, :3], axis=-1).min(axis=1)  # (B, n)
         closer = dist < best

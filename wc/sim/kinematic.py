@@ -21,6 +21,11 @@ def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
                      aw * bw - ax * bx - ay * by - az * bz], axis=-1)
 
 
+def quat_conjugate(q: np.ndarray) -> np.ndarray:
+    """Conjugate (the inverse of a unit quaternion) of xyzw quaternions q (..., 4), in q's dtype."""
+    return q * np.array([-1.0, -1.0, -1.0, 1.0], q.dtype)
+
+
 def quat_rotate(q: np.ndarray, p: np.ndarray) -> np.ndarray:
     """Rotate points p (..., 3) by xyzw quaternions q (..., 4)."""
     u, w = q[..., :3], q[..., 3:4]

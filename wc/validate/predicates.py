@@ -19,7 +19,7 @@ from wc.scene.cameras import camera_pose, intrinsics
 from wc.scene.mesh import ObjectMesh
 from wc.scene.piper import PAD_CENTRE_IN_FINGER_M, PAD_HALF_EXTENTS_M
 from wc.scene.scene import Scene
-from wc.sim.kinematic import quat_multiply, quat_rotate
+from wc.sim.kinematic import quat_conjugate, quat_multiply, quat_rotate
 from wc.validate.config import ValidateConfig
 from wc.validate.self_intersection import crossing_edges, unique_edges
 
@@ -55,8 +55,7 @@ def cloth_rows(scene: Scene) -> np.ndarray:
 def box_signed_distance(points: np.ndarray, centre: np.ndarray, quat: np.ndarray, half: np.ndarray) -> np.ndarray:
     """Exact signed distance [m] (negative inside) of points (..., 3) to oriented boxes broadcasting with them:
     centre (..., 3), quat xyzw (..., 4), half extents (..., 3)."""
-    inv = quat * np.array([-1.0, -1.0, -1.0, 1.0], quat.dtype)
-    q = np.abs(quat_rotate(inv, points - centre)) - half
+    q = np.abs(quat_rotate(quat_conjugate(quat), points - centre)) - half
     outside = np.linalg.norm(np.maximum(q, 0.0), axis=-1)
     return outside + np.minimum(q.max(axis=-1), 0.0)
 
