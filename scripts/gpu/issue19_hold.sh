@@ -5,7 +5,7 @@
 # Several simulate processes share the GPU (WORKERS, one task each): 4 gave 4.1x and 8 gave 5.6x the episodes per
 # minute of one (reports/gpu/simulate_workers_h100.json).
 #   issue19_hold.sh data     the precompiled CUDA kernels into place, the data (issue19_data.sh), then the training started in the background
-#                            (issue19_train.sh, one chunk of MAX_MINUTES; it outlives this call)
+#                            (issue19_train.sh, one chunk of MAX_MINUTES, resumed from CKPT_IN's parts if set; it outlives this call)
 #   issue19_hold.sh wait S   wait up to S seconds for that training; its report and model files to $OUT
 #   issue19_hold.sh finish   issue19_expand.sh on the finished model (else the partial run's best)
 cd "$(dirname "$0")/../.."
@@ -32,8 +32,12 @@ case "$1" in
     for m in /tmp/run/model /tmp/run/model.partial; do
       [ -f $m/model.safetensors ] && { cp $m/model.safetensors $m/model.json "$OUT"/; echo "model from $m"; break; }
     done ;;
-  finish)
-    [ -f /tmp/run/model/model.safetensors ] && model=/tmp/run/model || model=/tmp/run/model.partial
+  finish)  # the finished model, else the partial run's latest weights as a model folder
+    model=/tmp/run/model
+    if [ ! -f $model/model.safetensors ]; then
+      model=/tmp/run/model.latest && mkdir -p $model
+      cp /tmp/run/model.partial/last.safetensors $model/model.safetensors && cp /tmp/run/model.partial/last.json $model/model.json
+    fi
     MODEL=$model bash scripts/gpu/issue19_expand.sh ;;
   *) echo "usage: $0 data | wait SECONDS | finish" >&2; exit 2 ;;
 esac

@@ -28,6 +28,8 @@ class ExpandConfig:
     projection_edge_ratio: Range = (0.9, 1.1)  # joint: edge length / rest length kept within these
     pad_carry: bool = False  # joint: cloth held between closed finger pads moves with them (wc.expand.carry)
     pad_carry_radius_m: float = 0.004  # ... a cloth vertex this close to both pads of one arm is held
+    untangle: bool = False  # joint: self-crossings a projected step leaves are rolled back (wc.expand.untangle)
+    untangle_rounds: int = 4  # ... shorter steps tried at most (1/2, 1/4, ..., the last one none)
     device: str = "cpu"  # cpu | cuda | cuda:k | auto
     seed: int = 0
     max_minutes: float = 0.0  # no batch started after this much wall time (0: no limit); the report says so
@@ -46,8 +48,11 @@ class ExpandConfig:
             raise ValueError(f"projection must be joint, contact or none, got {self.projection!r}")
         if not self.pad_carry_radius_m > 0:
             raise ValueError(f"pad_carry_radius_m must be positive, got {self.pad_carry_radius_m}")
-        if self.pad_carry and self.projection != "joint":
-            raise ValueError(f"pad_carry needs projection 'joint', got {self.projection!r}")
+        for name in ("pad_carry", "untangle"):
+            if getattr(self, name) and self.projection != "joint":
+                raise ValueError(f"{name} needs projection 'joint', got {self.projection!r}")
+        if self.untangle_rounds < 1:
+            raise ValueError(f"untangle_rounds must be >= 1, got {self.untangle_rounds}")
         if not self.max_minutes >= 0:
             raise ValueError(f"max_minutes must be >= 0 (0: no limit), got {self.max_minutes}")
         if self.projection_iterations < 1:

@@ -24,6 +24,7 @@ from torch import Tensor
 
 from wc.expand.carry import PadCarry
 from wc.expand.contact import Bodies, ContactProjection
+from wc.expand.untangle import SelfIntersectionGuard
 from wc.validate.self_intersection import unique_edges
 
 
@@ -174,10 +175,11 @@ class JointStepProjection:
     keeping the largest strain and penetration it saw before and after, and the steps that did not converge."""
 
     def __init__(self, scene, edge_ratio: tuple[float, float], iterations: int,  # noqa: ANN001
-                 carry: PadCarry | None = None) -> None:
-        """carry: cloth held between closed pads follows them and stays pinned (wc.expand.carry); None: not."""
+                 carry: PadCarry | None = None, untangle: SelfIntersectionGuard | None = None) -> None:
+        """carry: cloth held between closed pads follows them and stays pinned (wc.expand.carry); untangle: self-
+        crossings the projected step leaves are rolled back (wc.expand.untangle); None: neither."""
         self.constraints = ConstraintProjection(scene, edge_ratio, iterations)
-        self.scene, self.carry = scene, carry
+        self.scene, self.carry, self.untangle = scene, carry, untangle
         self.stats = {"steps": 0, "not_converged": 0, "max_strain_before": 0.0, "max_strain_after": 0.0,
                       "max_depth_before_m": 0.0, "max_depth_after_m": 0.0, "carried_vertex_steps": 0}
 
@@ -194,6 +196,8 @@ class JointStepProjection:
         bodies = [Bodies(boxes.pos[:, frame], boxes.rot[:, frame], boxes.normals, boxes.offsets),
                   *self.constraints.contacts.rigid(x, link_poses)]
         x_out, v_out, r = self.constraints.project(x_prev, x, v, dt, bodies, pinned)
+        if self.untangle is not None:
+            x_out, v_out = self.untangle.apply(x_prev, x_out, v_out)
         finite = np.isfinite(r.strain_before)
         s = self.stats
         s["steps"] += 1

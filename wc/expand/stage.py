@@ -28,7 +28,7 @@ from tqdm import tqdm
 from wc.agent.planner import CoveragePlanner
 from wc.config import load_section, params_hash
 from wc.data.store import TrajectoryStore, TrajectoryWriter
-from wc.devices import resolve_device
+from wc.devices import resolve_device, resolve_warp_device
 from wc.eval.predictors import CHECKPOINT, WorldContactPredictor
 from wc.expand.carry import PadCarry
 from wc.expand.config import ExpandConfig
@@ -36,6 +36,7 @@ from wc.expand.constraints import JointStepProjection
 from wc.expand.contact import ContactProjectedPredictor
 from wc.expand.plan import PlannedEpisode, SourceEpisode, pick_parent, plan_episode, source_episodes
 from wc.expand.batched_rollout import Rollout, rollout_batch
+from wc.expand.untangle import SelfIntersectionGuard
 from wc.model.layout import scene_layout
 from wc.reports import environment_info, write_json_atomic
 from wc.scene.config import SceneConfig
@@ -122,7 +123,9 @@ def expand(params: dict[str, Any], model_dir: str | Path = "models/worldcontact"
     model = WorldContactPredictor.from_dir(model_dir, train_cfg, device)
     layout = scene_layout(src, list(scene.objects), list(scene.link_names), model.tag_scale).to(device)
     carry = PadCarry(scene, cfg.pad_carry_radius_m) if cfg.pad_carry else None
-    projection = (JointStepProjection(scene, cfg.projection_edge_ratio, cfg.projection_iterations, carry)
+    untangle = (SelfIntersectionGuard(scene, cfg.untangle_rounds, resolve_warp_device(validate_cfg.device, "validate.device"))
+                if cfg.untangle else None)
+    projection = (JointStepProjection(scene, cfg.projection_edge_ratio, cfg.projection_iterations, carry, untangle)
                   if cfg.projection == "joint" else None)
     predictor = model if cfg.projection == "none" else ContactProjectedPredictor(model, scene, projection)
     dt = src.dt
@@ -194,6 +197,8 @@ def expand(params: dict[str, Any], model_dir: str | Path = "models/worldcontact"
         "projection": cfg.projection,
         "pad_carry": cfg.pad_carry,
         "projection_stats": projection.stats if projection is not None else None,
+        "untangle": cfg.untangle,
+        "untangle_stats": untangle.stats if untangle is not None else None,
         "target_trajectories": cfg.target_trajectories,
         "wanted_generated": wanted,
         "attempts": attempts,
