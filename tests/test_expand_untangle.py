@@ -1,4 +1,4 @@
-"""The generation path's self-crossing rollback (wc.expand.untangle): after it no cloth edge crosses the cloth, only the
+"""The generation path's self-contact separation (wc.expand.self_contact) and self-crossing rollback (wc.expand.untangle): after it no cloth edge crosses the cloth, only the
 vertices of a crossing (and their neighbours) move back towards the previous state, along their own step, and their
 velocities shrink by the same factor (no velocity invented)."""
 
@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import torch
 
+from wc.expand.self_contact import SelfContactSeparation
 from wc.expand.untangle import SelfIntersectionGuard
 
 
@@ -68,3 +69,34 @@ def test_a_crossing_free_step_is_kept_and_a_crossing_previous_state_is_reported(
 def test_rounds_must_be_positive():
     with pytest.raises(ValueError, match="rounds"):
         SelfIntersectionGuard(_scene(), rounds=0)
+
+
+def test_self_contact_pushes_a_crossed_vertex_back_to_its_side_a_gap_away():
+    scene = _scene()
+    separation = SelfContactSeparation(scene, gap_m=0.002, filter_rings=1)
+    x_prev, x, _ = _state(scene)
+    pairs = separation.pairs(x)
+    out = x.clone()
+    inv_mass = torch.ones(x.shape[:2], dtype=x.dtype)
+    inv_mass[0, 8:] = 0.0  # the rigid rows never take part
+    first_shortfall = separation.separate(x_prev, out.clone(), pairs, inv_mass)[1]
+    for _ in range(30):
+        out, shortfall = separation.separate(x_prev, out, pairs, inv_mass)
+    assert float(first_shortfall[0]) > 0.01 and float(shortfall[0]) < 1e-6
+    assert not SelfIntersectionGuard(scene).crossing_vertices(out[0].numpy()).any()
+    p0, p1, p2 = out[0, 0], out[0, 1], out[0, 2]  # the bottom triangle under the corner
+    normal = torch.linalg.cross(p1 - p0, p2 - p0)
+    height = float(((out[0, 4] - p0) * normal / normal.norm()).sum())
+    assert height >= 0.002 - 1e-6  # the corner is back above the bottom sheet (its side before the step), a gap away
+    assert torch.equal(out[0, 8:], x[0, 8:])
+
+
+def test_self_contact_leaves_separated_layers_and_mesh_neighbours_alone():
+    scene = _scene()
+    separation = SelfContactSeparation(scene, gap_m=0.002, filter_rings=1)
+    x_prev, _, _ = _state(scene)
+    pairs = separation.pairs(x_prev)  # the sheets are 2 cm apart; a vertex's own triangles are filtered out
+    out, shortfall = separation.separate(x_prev, x_prev.clone(), pairs, torch.ones(x_prev.shape[:2], dtype=x_prev.dtype))
+    assert torch.equal(out, x_prev) and float(shortfall[0]) == 0.0
+    with pytest.raises(ValueError, match="gap_m"):
+        SelfContactSeparation(scene, gap_m=0.0)

@@ -28,6 +28,7 @@ class ExpandConfig:
     projection_edge_ratio: Range = (0.9, 1.1)  # joint: edge length / rest length kept within these
     pad_carry: bool = False  # joint: cloth held between closed finger pads moves with them (wc.expand.carry)
     pad_carry_radius_m: float = 0.004  # ... a cloth vertex this close to both pads of one arm is held
+    self_contact: bool = False  # joint: cloth kept sim.self_contact_gap_m from its own triangles (wc.expand.self_contact)
     untangle: bool = False  # joint: self-crossings a projected step leaves are rolled back (wc.expand.untangle)
     untangle_rounds: int = 4  # ... shorter steps tried at most (1/2, 1/4, ..., the last one none)
     device: str = "cpu"  # cpu | cuda | cuda:k | auto
@@ -48,7 +49,7 @@ class ExpandConfig:
             raise ValueError(f"projection must be joint, contact or none, got {self.projection!r}")
         if not self.pad_carry_radius_m > 0:
             raise ValueError(f"pad_carry_radius_m must be positive, got {self.pad_carry_radius_m}")
-        for name in ("pad_carry", "untangle"):
+        for name in ("pad_carry", "untangle", "self_contact"):
             if getattr(self, name) and self.projection != "joint":
                 raise ValueError(f"{name} needs projection 'joint', got {self.projection!r}")
         if self.untangle_rounds < 1:

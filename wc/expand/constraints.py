@@ -7,9 +7,11 @@ both hold within tolerance:
   each colour moves both ends of its violating edges to the nearest bound of [min_ratio, max_ratio] x rest length,
   split by inverse mass (pinned vertices do not move). Gauss-Seidel converges on chains where averaged Jacobi
   corrections do not (../shared/reference/learned-simulators.md);
-- contacts: vertices inside a body go to the surface of the union of the bodies (`ContactProjection.push_out`).
+- contacts: vertices inside a body go to the surface of the union of the bodies (`ContactProjection.push_out`);
+- optionally self-contact: cloth vertices kept a gap from their own mesh's triangles (wc.expand.self_contact).
 Velocities follow the edge corrections (v += Δx_edge / Δt, as the projection stage's V = ΔX / Δt), but a contact
-correction injects none: the push moves the vertex, and only its velocity into the surface is removed.
+correction injects none: the push moves the vertex, and only its velocity into the surface is removed (a
+self-contact correction moves positions only).
 
 Nothing here is bag-specific: edges of every cloth object of the scene, whatever bodies it has.
 """
@@ -24,6 +26,7 @@ from torch import Tensor
 
 from wc.expand.carry import PadCarry
 from wc.expand.contact import Bodies, ContactProjection
+from wc.expand.self_contact import SelfContactSeparation
 from wc.expand.untangle import SelfIntersectionGuard
 from wc.validate.self_intersection import unique_edges
 
@@ -62,14 +65,14 @@ class ConstraintProjection:
     """
 
     def __init__(self, scene, edge_ratio: tuple[float, float] = (0.9, 1.1), iterations: int = 50,  # noqa: ANN001
-                 tolerance_m: float = 1e-4) -> None:
+                 tolerance_m: float = 1e-4, self_contact: SelfContactSeparation | None = None) -> None:
         lo, hi = edge_ratio
         if not 0 < lo <= 1 <= hi:
             raise ValueError(f"edge_ratio must satisfy 0 < min <= 1 <= max, got {edge_ratio}")
         if iterations < 1 or not tolerance_m > 0:
             raise ValueError(f"need iterations >= 1 and tolerance_m > 0, got {iterations}, {tolerance_m}")
         self.contacts = ContactProjection(scene)
-        self.iterations, self.tolerance_m = iterations, tolerance_m
+        self.iterations, self.tolerance_m, self.self_contact = iterations, tolerance_m, self_contact
         slices = scene.vertex_slices()
         edges = [unique_edges(m.faces).astype(np.int64) + slices[n].start for n, m in scene.objects.items()
                  if scene.object_kinds[n] == "cloth"]
@@ -132,6 +135,7 @@ class ConstraintProjection:
         edge_shift = torch.zeros_like(x)
         pushed = torch.zeros(x.shape[:2], dtype=torch.bool, device=x.device)
         normal = torch.zeros_like(x)
+        pairs = self.self_contact.pairs(x) if self.self_contact is not None else []
         done = 0
         for done in range(1, self.iterations + 1):
             before = out.clone()
@@ -149,8 +153,9 @@ class ConstraintProjection:
                 pushed[:, cloth] |= hit
                 normal[:, cloth] = torch.where(hit[..., None], delta / delta.norm(dim=-1, keepdim=True).clamp_min(1e-12),
                                                normal[:, cloth])
+            short = self.self_contact.separate(x_prev, out, pairs, inv_mass)[1] if pairs else out.new_zeros(1)
             if bool((self._violation(out, lo, hi) <= self.tolerance_m).all()
-                    and (self._depth(out, bodies) <= self.tolerance_m).all()):
+                    and (self._depth(out, bodies) <= self.tolerance_m).all() and (short <= self.tolerance_m).all()):
                 break
         v_out = v + edge_shift / dt
         inward = (v_out * normal).sum(-1, keepdim=True).clamp_max(0.0)  # velocity into the surface of a pushed vertex
@@ -175,10 +180,12 @@ class JointStepProjection:
     keeping the largest strain and penetration it saw before and after, and the steps that did not converge."""
 
     def __init__(self, scene, edge_ratio: tuple[float, float], iterations: int,  # noqa: ANN001
-                 carry: PadCarry | None = None, untangle: SelfIntersectionGuard | None = None) -> None:
+                 carry: PadCarry | None = None, untangle: SelfIntersectionGuard | None = None,
+                 self_contact: SelfContactSeparation | None = None) -> None:
         """carry: cloth held between closed pads follows them and stays pinned (wc.expand.carry); untangle: self-
-        crossings the projected step leaves are rolled back (wc.expand.untangle); None: neither."""
-        self.constraints = ConstraintProjection(scene, edge_ratio, iterations)
+        crossings the projected step leaves are rolled back (wc.expand.untangle); self_contact: cloth kept a gap
+        from its own triangles in the projection (wc.expand.self_contact); None: none of these."""
+        self.constraints = ConstraintProjection(scene, edge_ratio, iterations, self_contact=self_contact)
         self.scene, self.carry, self.untangle = scene, carry, untangle
         self.stats = {"steps": 0, "not_converged": 0, "max_strain_before": 0.0, "max_strain_after": 0.0,
                       "max_depth_before_m": 0.0, "max_depth_after_m": 0.0, "carried_vertex_steps": 0}

@@ -36,11 +36,13 @@ from wc.expand.constraints import JointStepProjection
 from wc.expand.contact import ContactProjectedPredictor
 from wc.expand.plan import PlannedEpisode, SourceEpisode, pick_parent, plan_episode, source_episodes
 from wc.expand.batched_rollout import Rollout, rollout_batch
+from wc.expand.self_contact import SelfContactSeparation
 from wc.expand.untangle import SelfIntersectionGuard
 from wc.model.layout import scene_layout
 from wc.reports import environment_info, write_json_atomic
 from wc.scene.config import SceneConfig
 from wc.scene.scene import Scene
+from wc.sim.config import SimConfig
 from wc.seeds import SeedStream, episode_seed
 from wc.tasks.base import InfeasibleEpisode, Task, get_task
 from wc.train.config import TrainConfig
@@ -48,7 +50,7 @@ from wc.validate.config import ValidateConfig
 from wc.validate.predicates import PREDICATES, Episode, blow_up_detail, first_failure
 from wc.validate.stage import EpisodeScenes
 
-SECTIONS = ["expand", "scene", "tasks", "validate", "train"]
+SECTIONS = ["expand", "scene", "tasks", "validate", "train", "sim"]
 UNREACHABLE = "unreachable"  # the planner's name for an episode that could not be planned (as in simulate)
 
 
@@ -69,6 +71,19 @@ def _failure_detail(scene: Scene, r: Rollout, cfg: ValidateConfig, dt: float, re
     if reason != "blow_up":
         return {}
     return blow_up_detail(scene, Episode(r.x, r.v, r.action, r.link_poses, dt), cfg, frame)
+
+
+def joint_projection(cfg: ExpandConfig, scene: Scene, sim: SimConfig, validate_cfg: ValidateConfig
+                     ) -> JointStepProjection | None:
+    """The per-step projection `expand.projection: joint` asks for, with its options; None for the others."""
+    if cfg.projection != "joint":
+        return None
+    carry = PadCarry(scene, cfg.pad_carry_radius_m) if cfg.pad_carry else None
+    untangle = (SelfIntersectionGuard(scene, cfg.untangle_rounds, resolve_warp_device(validate_cfg.device, "validate.device"))
+                if cfg.untangle else None)
+    self_contact = (SelfContactSeparation(scene, sim.self_contact_gap_m, sim.self_contact_filter_rings)
+                    if cfg.self_contact else None)
+    return JointStepProjection(scene, cfg.projection_edge_ratio, cfg.projection_iterations, carry, untangle, self_contact)
 
 
 def _checkpoint_info(model_dir: Path) -> dict[str, Any]:
@@ -122,11 +137,7 @@ def expand(params: dict[str, Any], model_dir: str | Path = "models/worldcontact"
     torch.manual_seed(cfg.seed)
     model = WorldContactPredictor.from_dir(model_dir, train_cfg, device)
     layout = scene_layout(src, list(scene.objects), list(scene.link_names), model.tag_scale).to(device)
-    carry = PadCarry(scene, cfg.pad_carry_radius_m) if cfg.pad_carry else None
-    untangle = (SelfIntersectionGuard(scene, cfg.untangle_rounds, resolve_warp_device(validate_cfg.device, "validate.device"))
-                if cfg.untangle else None)
-    projection = (JointStepProjection(scene, cfg.projection_edge_ratio, cfg.projection_iterations, carry, untangle)
-                  if cfg.projection == "joint" else None)
+    projection = joint_projection(cfg, scene, load_section(params, "sim", SimConfig), validate_cfg)
     predictor = model if cfg.projection == "none" else ContactProjectedPredictor(model, scene, projection)
     dt = src.dt
     checkpoint = _checkpoint_info(model_dir)
@@ -198,7 +209,8 @@ def expand(params: dict[str, Any], model_dir: str | Path = "models/worldcontact"
         "pad_carry": cfg.pad_carry,
         "projection_stats": projection.stats if projection is not None else None,
         "untangle": cfg.untangle,
-        "untangle_stats": untangle.stats if untangle is not None else None,
+        "self_contact": cfg.self_contact,
+        "untangle_stats": projection.untangle.stats if projection is not None and projection.untangle else None,
         "target_trajectories": cfg.target_trajectories,
         "wanted_generated": wanted,
         "attempts": attempts,
