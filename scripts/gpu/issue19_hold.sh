@@ -7,10 +7,16 @@
 #   issue19_hold.sh data     the precompiled CUDA kernels into place, the data (issue19_data.sh), then the training started in the background
 #                            (issue19_train.sh, one chunk of MAX_MINUTES, resumed from CKPT_IN's parts if set; it outlives this call)
 #   issue19_hold.sh wait S   wait up to S seconds for that training; its report and model files to $OUT
-#   issue19_hold.sh finish   issue19_expand.sh on the finished model (else the partial run's best)
+#   issue19_hold.sh finish   issue19_expand.sh on the finished model (else the partial run's latest weights)
 cd "$(dirname "$0")/../.."
 export PYTHONPATH=/tmp/site:$PWD
 mkdir -p /tmp/run "$OUT"
+latest_model() {  # the finished model folder, else the partial run's latest weights made one (/tmp/run/model.latest)
+  if [ -f /tmp/run/model/model.safetensors ]; then echo /tmp/run/model; return; fi
+  mkdir -p /tmp/run/model.latest
+  cp /tmp/run/model.partial/last.safetensors /tmp/run/model.latest/model.safetensors &&
+    cp /tmp/run/model.partial/last.json /tmp/run/model.latest/model.json && echo /tmp/run/model.latest
+}
 case "$1" in
   data)
     kernels=${KERNELS:-scripts/gpu/kernel_cache/warp-1.19.0_newton-1.8.0_sm90.tar.xz}
@@ -29,15 +35,8 @@ case "$1" in
     while kill -0 "$(cat /tmp/run/train_bg.pid)" 2>/dev/null && [ $SECONDS -lt $end ]; do sleep 10; done
     tail -4 /tmp/run/ckpt/train.log; tail -3 /tmp/run/train_bg.log
     cp /tmp/run/ckpt/train.json /tmp/run/ckpt/train_loss.csv "$OUT"/ 2>/dev/null
-    for m in /tmp/run/model /tmp/run/model.partial; do
-      [ -f $m/model.safetensors ] && { cp $m/model.safetensors $m/model.json "$OUT"/; echo "model from $m"; break; }
-    done ;;
-  finish)  # the finished model, else the partial run's latest weights as a model folder
-    model=/tmp/run/model
-    if [ ! -f $model/model.safetensors ]; then
-      model=/tmp/run/model.latest && mkdir -p $model
-      cp /tmp/run/model.partial/last.safetensors $model/model.safetensors && cp /tmp/run/model.partial/last.json $model/model.json
-    fi
-    MODEL=$model bash scripts/gpu/issue19_expand.sh ;;
+    model=$(latest_model) && cp $model/model.safetensors $model/model.json "$OUT"/ && echo "model from $model" ;;
+  finish)
+    MODEL=$(latest_model) bash scripts/gpu/issue19_expand.sh ;;
   *) echo "usage: $0 data | wait SECONDS | finish" >&2; exit 2 ;;
 esac

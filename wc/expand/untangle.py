@@ -17,6 +17,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from wc.validate.predicates import cloth_rows
 from wc.validate.self_intersection import crossing_edges, unique_edges
 
 
@@ -33,6 +34,7 @@ class SelfIntersectionGuard:
         slices = scene.vertex_slices()
         self.meshes = [(slices[n], np.asarray(m.faces, np.int32), unique_edges(m.faces))
                        for n, m in scene.objects.items() if scene.object_kinds[n] == "cloth"]
+        self.cloth_rows = cloth_rows(scene)
         self.stats = {"steps_with_crossings": 0, "rolled_back_vertex_steps": 0, "unresolved_steps": 0}
 
     def crossing_vertices(self, x: np.ndarray) -> np.ndarray:
@@ -70,11 +72,8 @@ class SelfIntersectionGuard:
                 continue
             self.stats["steps_with_crossings"] += 1
             rolled = np.zeros(len(now), bool)
-            cloth = np.zeros(len(now), bool)
-            for sl, _, _ in self.meshes:
-                cloth[sl] = True
             r = 0
-            while involved.any() and not rolled[cloth].all():
+            while involved.any() and not rolled[self.cloth_rows].all():
                 r += 1
                 rolled |= involved if r == 1 else self._grow(rolled | involved)
                 a = 0.5 ** r if r < self.rounds else 0.0
