@@ -29,8 +29,13 @@ class ExpandConfig:
     pad_carry: bool = False  # joint: cloth held between closed finger pads moves with them (wc.expand.carry)
     pad_carry_radius_m: float = 0.004  # ... a cloth vertex this close to both pads of one arm is held
     self_contact: bool = False  # joint: cloth kept sim.self_contact_gap_m from its own triangles (wc.expand.self_contact)
-    untangle: bool = False  # joint: self-crossings a projected step leaves are rolled back (wc.expand.untangle)
-    untangle_rounds: int = 4  # ... shorter steps tried at most (1/2, 1/4, ..., the last one none)
+    # joint: what keeps a projected step from making the cloth cross itself: "none"; "rollback", crossings the step
+    # leaves rolled back (wc.expand.untangle); "bounded", relative motions bounded by element distances so that no
+    # crossing can form (wc.expand.crossing_free)
+    untangle: str = "none"
+    untangle_rounds: int = 4  # rollback: shorter steps tried at most (1/2, 1/4, ..., the last one none);
+    # bounded: distance measurements (and tries at the rest of the step) at most
+    untangle_share: float = 0.8  # bounded: share of a pair's distance its ends may move relative to each other
     device: str = "cpu"  # cpu | cuda | cuda:k | auto
     seed: int = 0
     max_minutes: float = 0.0  # no batch started after this much wall time (0: no limit); the report says so
@@ -49,8 +54,12 @@ class ExpandConfig:
             raise ValueError(f"projection must be joint, contact or none, got {self.projection!r}")
         if not self.pad_carry_radius_m > 0:
             raise ValueError(f"pad_carry_radius_m must be positive, got {self.pad_carry_radius_m}")
+        if self.untangle not in ("none", "rollback", "bounded"):
+            raise ValueError(f"untangle must be none, rollback or bounded, got {self.untangle!r}")
+        if not 0 < self.untangle_share < 1:
+            raise ValueError(f"untangle_share must be in (0, 1), got {self.untangle_share}")
         for name in ("pad_carry", "untangle", "self_contact"):
-            if getattr(self, name) and self.projection != "joint":
+            if getattr(self, name) not in (False, "none") and self.projection != "joint":
                 raise ValueError(f"{name} needs projection 'joint', got {self.projection!r}")
         if self.untangle_rounds < 1:
             raise ValueError(f"untangle_rounds must be >= 1, got {self.untangle_rounds}")

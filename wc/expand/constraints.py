@@ -26,6 +26,7 @@ from torch import Tensor
 
 from wc.expand.carry import PadCarry
 from wc.expand.contact import Bodies, ContactProjection
+from wc.expand.crossing_free import CrossingFreeStep
 from wc.expand.self_contact import SelfContactSeparation
 from wc.expand.untangle import SelfIntersectionGuard
 from wc.validate.self_intersection import unique_edges
@@ -180,10 +181,11 @@ class JointStepProjection:
     keeping the largest strain and penetration it saw before and after, and the steps that did not converge."""
 
     def __init__(self, scene, edge_ratio: tuple[float, float], iterations: int,  # noqa: ANN001
-                 carry: PadCarry | None = None, untangle: SelfIntersectionGuard | None = None,
+                 carry: PadCarry | None = None, untangle: SelfIntersectionGuard | CrossingFreeStep | None = None,
                  self_contact: SelfContactSeparation | None = None) -> None:
         """carry: cloth held between closed pads follows them and stays pinned (wc.expand.carry); untangle: self-
-        crossings the projected step leaves are rolled back (wc.expand.untangle); self_contact: cloth kept a gap
+        crossings the projected step leaves are rolled back (wc.expand.untangle), or the step is bounded so that none
+        can form (wc.expand.crossing_free); self_contact: cloth kept a gap
         from its own triangles in the projection (wc.expand.self_contact); None: none of these."""
         self.constraints = ConstraintProjection(scene, edge_ratio, iterations, self_contact=self_contact)
         self.scene, self.carry, self.untangle = scene, carry, untangle
@@ -204,7 +206,7 @@ class JointStepProjection:
                   *self.constraints.contacts.rigid(x, link_poses)]
         x_out, v_out, r = self.constraints.project(x_prev, x, v, dt, bodies, pinned)
         if self.untangle is not None:
-            x_out, v_out = self.untangle.apply(x_prev, x_out, v_out)
+            x_out, v_out = self.untangle.apply(x_prev, x_out, v_out, dt)
         finite = np.isfinite(r.strain_before)
         s = self.stats
         s["steps"] += 1

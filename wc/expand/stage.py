@@ -34,6 +34,7 @@ from wc.expand.carry import PadCarry
 from wc.expand.config import ExpandConfig
 from wc.expand.constraints import JointStepProjection
 from wc.expand.contact import ContactProjectedPredictor
+from wc.expand.crossing_free import CrossingFreeStep
 from wc.expand.plan import PlannedEpisode, SourceEpisode, pick_parent, plan_episode, source_episodes
 from wc.expand.batched_rollout import Rollout, rollout_batch
 from wc.expand.self_contact import SelfContactSeparation
@@ -79,11 +80,14 @@ def joint_projection(cfg: ExpandConfig, scene: Scene, sim: SimConfig, validate_c
     if cfg.projection != "joint":
         return None
     carry = PadCarry(scene, cfg.pad_carry_radius_m) if cfg.pad_carry else None
-    untangle = (SelfIntersectionGuard(scene, cfg.untangle_rounds, resolve_warp_device(validate_cfg.device, "validate.device"))
-                if cfg.untangle else None)
+    untangle = {"none": None,
+                "rollback": lambda: SelfIntersectionGuard(scene, cfg.untangle_rounds,
+                                                          resolve_warp_device(validate_cfg.device, "validate.device")),
+                "bounded": lambda: CrossingFreeStep(scene, cfg.untangle_share, cfg.untangle_rounds)}[cfg.untangle]
     self_contact = (SelfContactSeparation(scene, sim.self_contact_gap_m, sim.self_contact_filter_rings)
                     if cfg.self_contact else None)
-    return JointStepProjection(scene, cfg.projection_edge_ratio, cfg.projection_iterations, carry, untangle, self_contact)
+    return JointStepProjection(scene, cfg.projection_edge_ratio, cfg.projection_iterations, carry,
+                               untangle() if untangle else None, self_contact)
 
 
 def _checkpoint_info(model_dir: Path) -> dict[str, Any]:

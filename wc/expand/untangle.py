@@ -58,8 +58,9 @@ class SelfIntersectionGuard:
         return out
 
     @torch.no_grad()
-    def apply(self, x_prev: Tensor, x: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:
-        """(x, v) (B, N, 3) of a step from x_prev with every self-crossing rolled back (module docstring)."""
+    def apply(self, x_prev: Tensor, x: Tensor, v: Tensor, dt: float | None = None) -> tuple[Tensor, Tensor]:
+        """(x, v) (B, N, 3) of a step from x_prev with every self-crossing rolled back (module docstring); dt is
+        not needed (velocities scale with the step), taken for the `CrossingFreeStep.apply` signature."""
         if not self.meshes:
             return x, v
         x_out, v_out = x.clone(), v.clone()
