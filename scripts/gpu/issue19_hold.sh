@@ -7,7 +7,8 @@
 #   issue19_hold.sh data     the precompiled CUDA kernels into place, the data (issue19_data.sh), then the training started in the background
 #                            (issue19_train.sh, one chunk of MAX_MINUTES, resumed from CKPT_IN's parts if set; it outlives this call)
 #   issue19_hold.sh wait S   wait up to S seconds for that training; its report and model files to $OUT
-#   issue19_hold.sh finish   issue19_expand.sh on the finished model (else the partial run's latest weights)
+#                            (TRAIN=0: the data only)
+#   issue19_hold.sh finish   issue19_expand.sh on MODEL, else the finished model (else the partial run's latest weights)
 cd "$(dirname "$0")/../.."
 export PYTHONPATH=/tmp/site:$PWD
 mkdir -p /tmp/run "$OUT"
@@ -27,6 +28,7 @@ case "$1" in
       echo "WARNING: no precompiled CUDA kernels at $kernels: expect ~13 min of compilation first" >&2
     fi
     WORLDS=${WORLDS:-8} WORKERS=${WORKERS:-6} SIM_MINUTES=${SIM_MINUTES:-4} bash scripts/gpu/issue19_data.sh
+    [ "${TRAIN:-1}" = 0 ] && exit 0  # data only (the model comes from elsewhere: MODEL=... for finish)
     CKPT_OUT=/tmp/run/ckpt setsid nohup bash scripts/gpu/issue19_train.sh > /tmp/run/train_bg.log 2>&1 < /dev/null &
     echo $! > /tmp/run/train_bg.pid
     sleep 20; tail -3 /tmp/run/ckpt/train.log 2>/dev/null ;;
@@ -37,6 +39,6 @@ case "$1" in
     cp /tmp/run/ckpt/train.json /tmp/run/ckpt/train_loss.csv "$OUT"/ 2>/dev/null
     model=$(latest_model) && cp $model/model.safetensors $model/model.json "$OUT"/ && echo "model from $model" ;;
   finish)
-    MODEL=$(latest_model) bash scripts/gpu/issue19_expand.sh ;;
+    MODEL=${MODEL:-$(latest_model)} bash scripts/gpu/issue19_expand.sh ;;
   *) echo "usage: $0 data | wait SECONDS | finish" >&2; exit 2 ;;
 esac

@@ -54,8 +54,8 @@ class ExpandConfig:
             raise ValueError(f"projection must be joint, contact or none, got {self.projection!r}")
         if not self.pad_carry_radius_m > 0:
             raise ValueError(f"pad_carry_radius_m must be positive, got {self.pad_carry_radius_m}")
-        if self.untangle not in ("none", "rollback", "bounded"):
-            raise ValueError(f"untangle must be none, rollback or bounded, got {self.untangle!r}")
+        if self.untangle not in ("none", "rollback", "bounded", "bounded+rollback"):
+            raise ValueError(f"untangle must be none, rollback, bounded or bounded+rollback, got {self.untangle!r}")
         if not 0 < self.untangle_share < 1:
             raise ValueError(f"untangle_share must be in (0, 1), got {self.untangle_share}")
         for name in ("pad_carry", "untangle", "self_contact"):

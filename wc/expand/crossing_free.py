@@ -83,13 +83,16 @@ class CrossingFreeStep:
     """Bounds a step's relative motions so that the cloth cannot cross itself (module docstring).
 
     share: the fraction of a pair's distance its ends may move relative to each other per round (< 1); rounds:
-    distance measurements (and tries at the rest of the step) at most; passes: Jacobi passes per round.
+    distance measurements (and tries at the rest of the step) at most; passes: Jacobi passes per round; hold:
+    the ends of pairs the passes leave violated keep the previous state (False: they are left as they are); then: a
+    guard applied to the bounded step after it (`SelfIntersectionGuard`: rollback of what crossings remain).
     """
 
-    def __init__(self, scene, share: float = 0.8, rounds: int = 3, passes: int = 30) -> None:  # noqa: ANN001
+    def __init__(self, scene, share: float = 0.8, rounds: int = 3, passes: int = 30, hold: bool = True,  # noqa: ANN001
+                 then: object | None = None) -> None:
         if not 0 < share < 1 or rounds < 1 or passes < 1:
             raise ValueError(f"need 0 < share < 1, rounds >= 1 and passes >= 1; got {share}, {rounds}, {passes}")
-        self.share, self.rounds, self.passes = float(share), rounds, passes
+        self.share, self.rounds, self.passes, self.hold, self.then = float(share), rounds, passes, hold, then
         slices = scene.vertex_slices()
         self.meshes = []  # (first row, vertex count, faces (F, 3), edges (E, 2)) in the mesh's own rows
         for name, mesh in scene.objects.items():
@@ -170,6 +173,8 @@ class CrossingFreeStep:
             count.index_put_((bo, io), ones, accumulate=True)
             count.index_put_((bo, jo), ones, accumulate=True)
             step += delta / count.clamp_min(1.0)[..., None]
+        if not self.hold:  # the leftovers are `then`'s (expand.untangle: bounded+rollback)
+            return step
         held = torch.zeros(step.shape[:2], dtype=torch.bool, device=step.device)
         while True:  # what the passes left: both ends keep the previous state, which satisfies every bound
             over = (step[b, i] - step[b, j]).norm(dim=-1) > bound
@@ -205,4 +210,5 @@ class CrossingFreeStep:
         if finite.any():
             self.stats["max_cut_m"] = max(self.stats["max_cut_m"], float(cut[finite].max()))
         x_out = y.to(x.dtype)
-        return x_out, v + (x_out - x) / dt
+        v_out = v + (x_out - x) / dt
+        return self.then.apply(x_prev, x_out, v_out, dt) if self.then is not None else (x_out, v_out)

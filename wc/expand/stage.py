@@ -80,14 +80,24 @@ def joint_projection(cfg: ExpandConfig, scene: Scene, sim: SimConfig, validate_c
     if cfg.projection != "joint":
         return None
     carry = PadCarry(scene, cfg.pad_carry_radius_m) if cfg.pad_carry else None
-    untangle = {"none": None,
-                "rollback": lambda: SelfIntersectionGuard(scene, cfg.untangle_rounds,
-                                                          resolve_warp_device(validate_cfg.device, "validate.device")),
-                "bounded": lambda: CrossingFreeStep(scene, cfg.untangle_share, cfg.untangle_rounds)}[cfg.untangle]
-    self_contact = (SelfContactSeparation(scene, sim.self_contact_gap_m, sim.self_contact_filter_rings)
-                    if cfg.self_contact else None)
+    def rollback() -> SelfIntersectionGuard:
+        return SelfIntersectionGuard(scene, cfg.untangle_rounds, resolve_warp_device(validate_cfg.device, "validate.device"))
+
+    untangle = {"none": lambda: None, "rollback": rollback,
+                "bounded": lambda: CrossingFreeStep(scene, cfg.untangle_share, cfg.untangle_rounds),
+                "bounded+rollback": lambda: CrossingFreeStep(scene, cfg.untangle_share, cfg.untangle_rounds, hold=False,
+                                                             then=rollback())}[cfg.untangle]()
     return JointStepProjection(scene, cfg.projection_edge_ratio, cfg.projection_iterations, carry,
-                               untangle() if untangle else None, self_contact)
+                               untangle, self_contact)
+
+
+def _untangle_stats(projection: JointStepProjection | None) -> dict[str, Any] | None:
+    """The self-crossing guard's counters (and its follow-up guard's, under "then"); None without a guard."""
+    guard = projection.untangle if projection is not None else None
+    if guard is None:
+        return None
+    then = getattr(guard, "then", None)
+    return {**guard.stats, **({"then": then.stats} if then is not None else {})}
 
 
 def _checkpoint_info(model_dir: Path) -> dict[str, Any]:
@@ -214,7 +224,7 @@ def expand(params: dict[str, Any], model_dir: str | Path = "models/worldcontact"
         "projection_stats": projection.stats if projection is not None else None,
         "untangle": cfg.untangle,
         "self_contact": cfg.self_contact,
-        "untangle_stats": projection.untangle.stats if projection is not None and projection.untangle else None,
+        "untangle_stats": _untangle_stats(projection),
         "target_trajectories": cfg.target_trajectories,
         "wanted_generated": wanted,
         "attempts": attempts,
