@@ -166,7 +166,11 @@ def test_stage_writes_checked_worldcontact_episodes(run, store_path, params):
         assert e["action"][:, 13].max() > e["action"][:, 13].min()  # the right gripper opens and closes
         assert e["env_poses"].shape == (len(e["x"]), 1, 7)
         depth = table_and_robot_distance(scene, e["x"][1:, cloth_rows(scene)], e["link_poses"][1:])
-        assert depth.min() > -1e-5  # contact-projected after every step: nothing inside the table or the robot
+        # contact-projected after every step; the self-crossing guard (params default expand.untangle) acts after the
+        # projection and may keep a vertex nearer its previous state, inside a link that moved: within the source
+        # checks' penetration tolerance (the projection's own invariant: tests/test_constraint_projection.py)
+        tolerance = 1e-5 if params["expand"]["untangle"] == "none" else load_params()["validate"]["penetration_tol_m"]
+        assert depth.min() > -tolerance
 
 
 @pytest.mark.slow

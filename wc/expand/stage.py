@@ -87,6 +87,8 @@ def joint_projection(cfg: ExpandConfig, scene: Scene, sim: SimConfig, validate_c
                 "bounded": lambda: CrossingFreeStep(scene, cfg.untangle_share, cfg.untangle_rounds),
                 "bounded+rollback": lambda: CrossingFreeStep(scene, cfg.untangle_share, cfg.untangle_rounds, hold=False,
                                                              then=rollback())}[cfg.untangle]()
+    self_contact = (SelfContactSeparation(scene, sim.self_contact_gap_m, sim.self_contact_filter_rings)
+                    if cfg.self_contact else None)
     return JointStepProjection(scene, cfg.projection_edge_ratio, cfg.projection_iterations, carry,
                                untangle, self_contact)
 
