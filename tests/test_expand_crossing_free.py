@@ -130,3 +130,19 @@ def test_non_finite_episodes_pass_through_and_bad_settings_are_refused():
         ExpandConfig(**base, untangle="bounded", untangle_share=0.0).validate()
     with pytest.raises(ValueError, match="needs projection 'joint'"):
         ExpandConfig(**base, untangle="bounded", projection="contact").validate()
+
+
+def test_bounded_then_rollback_leaves_no_crossing_and_reports_both_guards():
+    from wc.expand.untangle import SelfIntersectionGuard
+
+    scene = _two_layers(n=5, gap=0.002)
+    gen = torch.Generator().manual_seed(2)
+    x = _rest(scene)
+    rollback = SelfIntersectionGuard(scene)
+    guard = CrossingFreeStep(scene, rounds=1, passes=1, hold=False, then=rollback)  # one pass: leftovers likely
+    for _ in range(4):
+        target = x + 0.002 * torch.randn(x.shape, generator=gen, dtype=x.dtype)
+        x, _ = guard.apply(x, target, torch.zeros_like(x), DT)
+        assert not _crosses(scene, x[0])
+    assert guard.stats["held_vertex_steps"] == 0 and guard.stats["limited_steps"] > 0
+    assert rollback.stats["unresolved_steps"] == 0
