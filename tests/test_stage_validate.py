@@ -60,7 +60,7 @@ def _episode(scene_cfg: SceneConfig, kind: str) -> tuple[dict[str, np.ndarray], 
     scene = build_scene(scene_cfg, objects, held=held)
     bag = scene.objects["bag"].vertices.astype(np.float64)
     x = np.repeat(bag[None], T, axis=0)
-    if kind == "into_table":
+    if kind in ("into_table", "dropped_into_table"):
         x[5:, :, 2] -= 0.02  # the whole bag 2 cm down: its bottom inside the table from frame 5
     if "sphere" in objects:
         sphere = scene.objects["sphere"].vertices.astype(np.float64)
@@ -87,10 +87,10 @@ def _write_raw(path: Path, scene_cfg: SceneConfig, episodes: dict[str, tuple[str
         w.add_scene(full)
         for i, (eid, (task, kind)) in enumerate(episodes.items()):
             arrays, layout = _episode(scene_cfg, kind)
-            rejected = kind == "not_lifted"
+            reason = {"not_lifted": "not_lifted", "dropped_into_table": "dropped"}.get(kind)  # simulate's verdict
             w.add_episode(**arrays, episode_id=eid, task=task, seed=100 + i, cell=i % 3, speed=0.08,
-                          amplitude=0.16, split=None, accepted=not rejected,
-                          first_failure="not_lifted" if rejected else None, source="simulator", **layout)
+                          amplitude=0.16, split=None, accepted=reason is None,
+                          first_failure=reason, source="simulator", **layout)
     return path
 
 
@@ -164,6 +164,34 @@ def test_split_is_deterministic(result, raw, params, tmp_path):
     a, b = TrajectoryStore(out), TrajectoryStore(tmp_path / "again.zarr")
     assert [a.episode_attrs(e)["split"] for e in CLEAN] == [b.episode_attrs(e)["split"] for e in CLEAN]
     assert again["tasks"] == first["tasks"]
+
+
+@pytest.mark.slow
+def test_task_failures_kept_for_training_only(params, tmp_path):
+    """train_on_task_failures: a physically clean episode whose task failed joins the train split with accepted
+    false; one whose task failed but whose state is bad stays out; the accepted episodes and splits are unchanged;
+    expand's sources and render skip the kept failure, training's train phases include it."""
+    from wc.render.stage import select_episodes
+    from wc.train.data import phases_of
+    scene_cfg = load_section(params, "scene", SceneConfig)
+    episodes = {**EPISODES, "ep_000009": ("lift_handle", "dropped_into_table")}
+    raw = _write_raw(tmp_path / "raw.zarr", scene_cfg, episodes)
+    plain = validate(params, raw, tmp_path / "plain.zarr", tmp_path / "plain.json")
+    keep = copy.deepcopy(params)
+    keep["validate"]["train_on_task_failures"] = True
+    report = validate(keep, raw, tmp_path / "keep.zarr", tmp_path / "keep.json")
+    assert report["task_failures_kept"] == 1 and plain["task_failures_kept"] == 0
+    assert report["tasks"]["lift_handle"]["task_failures_kept"] == 1
+    assert report["accepted"] == plain["accepted"] == 6 and report["rejected_episodes"] == plain["rejected_episodes"]
+    store = TrajectoryStore(tmp_path / "keep.zarr")
+    assert store.episode_ids == sorted(CLEAN + ["ep_000004"])
+    kept = store.episode_attrs("ep_000004")
+    assert (kept["split"], kept["accepted"], kept["first_failure"]) == ("train", False, "not_lifted")
+    plain_store = TrajectoryStore(tmp_path / "plain.zarr")
+    assert all(store.episode_attrs(e)["split"] == plain_store.episode_attrs(e)["split"] for e in CLEAN)
+    assert "ep_000004" not in store.episodes_where(task="lift_handle", accepted=True)
+    assert select_episodes(store, None) == CLEAN
+    assert "ep_000004" in {p.episode for p in phases_of(store, "train")}
 
 
 def test_split_rule():

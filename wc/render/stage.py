@@ -39,12 +39,11 @@ def default_pairs() -> list[tuple[str, str]]:
 
 
 def select_episodes(store: TrajectoryStore, tasks: Sequence[str] | None) -> list[str]:
-    """Episode ids of the store to render: all, or those of the given tasks (error if none match; an empty
-    store, e.g. an expansion that accepted nothing, renders to an empty frames store)."""
-    if tasks is None:
-        ids = store.episode_ids
-    else:
-        ids = [e for e in store.episode_ids if store.episode_attrs(e)["task"] in tasks]
+    """Ids of the store's accepted episodes to render: all, or those of the given tasks (error if none match;
+    an empty store, e.g. an expansion that accepted nothing, renders to an empty frames store). Episodes kept
+    for world-model training only (`accepted` false: validate.train_on_task_failures) are not rendered."""
+    ids = [e for e in store.episode_ids if store.episode_attrs(e)["accepted"] is not False
+           and (tasks is None or store.episode_attrs(e)["task"] in tasks)]
     if not ids and store.episode_ids:
         present = sorted({store.episode_attrs(e)["task"] for e in store.episode_ids})
         raise ValueError(f"{store.path}: no episode to render (render.tasks {list(tasks or [])}; "

@@ -26,6 +26,9 @@ class ValidateConfig:
     test_per_task: int  # ... and in the test split (filled before val; >= 1 train episode is always kept)
     split_seed: int  # seed of the per-task shuffle that assigns the splits
     view_camera: str = "top"
+    train_on_task_failures: bool = False  # keep episodes that pass every physical check but fail their task (a strap
+    # that slipped, a bag dropped) in the train split, `accepted` false: the world model learns failures too, and
+    # every consumer of accepted episodes (expand's sources, render, the policy dataset) still skips them
     device: str = "cpu"  # warp device of the self-intersection check (cpu | cuda[:N] | auto): per frame a BVH over
     # the cloth and a ray cast per edge; at paper size (20k vertices) ~0.14 s a frame on one CPU core
 

@@ -4,7 +4,9 @@ with a split (data/source/trajectories.zarr) and report the counts (reports/vali
 An episode the simulate stage already rejected (`accepted` False) keeps its logged reason
 (`first_failure`, e.g. a predicate name or a task-level reason such as "not_lifted"); the others are
 checked by `first_failure` on the scene rebuilt from params `scene` and the episode's layout
-(`objects`, `held`). If no episode is accepted, the report is still written, then
+(`objects`, `held`). With `validate.train_on_task_failures`, a rejected episode whose reason is its task's verdict
+(not a predicate) and that passes every predicate here is written too, to the train split with `accepted` false:
+physically valid data of a failed task, for the world model only. If no episode is accepted, the report is still written, then
 NoAcceptedEpisodesError is raised and no output store is written, so `dvc repro` stops there.
 """
 
@@ -29,6 +31,7 @@ from wc.validate.split import SPLITS, split_episodes
 
 SECTIONS = ["validate", "scene"]
 UNSPECIFIED = "unspecified"  # reason counted for a raw episode rejected without a logged first_failure
+NOT_TASK_VERDICTS = {UNSPECIFIED, "unreachable", *PREDICATES}  # reasons that are not a task's own verdict
 MESH_ATOL_M = 1e-6  # rebuilt rest meshes must match the store's to this
 
 
@@ -143,6 +146,7 @@ def validate(params: dict[str, Any], raw: str | Path = "data/source/raw.zarr",
     rejections = _rejections()
     rejected: dict[str, dict[str, Any]] = {}
     accepted: dict[str, str] = {}  # episode id -> task
+    task_failures: dict[str, str] = {}  # physically valid episodes whose task failed, kept for training (id -> reason)
     with tqdm(src.episode_ids, desc="validate", unit="episode") as bar:
         for eid in bar:
             attrs = src.episode_attrs(eid)
@@ -151,6 +155,10 @@ def validate(params: dict[str, Any], raw: str | Path = "data/source/raw.zarr",
             t["episodes"] += 1
             if attrs["accepted"] is False:
                 reason, frame, by = attrs.get("first_failure") or UNSPECIFIED, None, "simulate"
+                if cfg.train_on_task_failures and reason not in NOT_TASK_VERDICTS \
+                        and check_episode(src, eid, scenes, cfg) is None:
+                    task_failures[eid] = reason
+                    t["task_failures_kept"] = t.get("task_failures_kept", 0) + 1
             else:
                 failure = check_episode(src, eid, scenes, cfg)
                 reason, frame, by = (*failure, "validate") if failure else (None, None, None)
@@ -174,6 +182,7 @@ def validate(params: dict[str, Any], raw: str | Path = "data/source/raw.zarr",
         "accepted": len(accepted),
         "rejected": len(rejected),
         "splits": {s: sum(1 for v in splits.values() if v == s) for s in SPLITS},
+        "task_failures_kept": len(task_failures),  # in the train split, accepted false (train_on_task_failures)
         "rejections": rejections,
         "tasks": tasks,
         "rejected_episodes": rejected,
@@ -196,7 +205,9 @@ def validate(params: dict[str, Any], raw: str | Path = "data/source/raw.zarr",
             f"validate: none of the {len(src.episode_ids)} episodes in {raw} was accepted "
             f"(rejections: { {k: v for k, v in rejections.items() if v} }); no store written to {out}. "
             f"See {report}; fix the simulation or loosen params `validate`.")
-    ids = sorted(accepted, key=lambda e: (len(e), e))
-    updates = {eid: {"split": splits[eid], "accepted": True, "first_failure": None} for eid in ids}
+    updates = {eid: {"split": splits[eid], "accepted": True, "first_failure": None} for eid in accepted}
+    updates.update({eid: {"split": "train", "accepted": False, "first_failure": reason}
+                    for eid, reason in task_failures.items()})
+    ids = sorted(updates, key=lambda e: (len(e), e))
     copy_store(src, out, ids, updates, created_by="stages.validate", params_hash=phash)
     return finish()
