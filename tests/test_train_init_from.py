@@ -88,10 +88,10 @@ def test_a_missing_or_mismatched_checkpoint_fails_naming_it(pretrained, tmp_path
 
 
 def test_the_shipped_pretrained_model_fine_tunes_under_the_default_params(pretrained, tmp_path):
-    """models/pretrained/worldcontact-contact-tasks matches params.yaml's model section, so the CPU default's train
+    """models/pretrained/worldcontact-lift-handle matches params.yaml's model section, so the CPU default's train
     stage can start from it (train.init_from), and its weights arrive unchanged."""
     params, store, _ = pretrained
-    shipped = Path(__file__).resolve().parents[1] / "models/pretrained/worldcontact-contact-tasks/model.safetensors"
+    shipped = Path(__file__).resolve().parents[1] / "models/pretrained/worldcontact-lift-handle/model.safetensors"
     report = _fine_tune(params, store, str(shipped), tmp_path)
     assert report["init_from"] == str(shipped)
     ours, theirs = _weights(tmp_path / "model"), load_file(str(shipped))
