@@ -181,3 +181,19 @@ def test_the_gpu_params_list_only_what_differs_from_the_defaults():
         return found
 
     assert same(override, base, "") == []
+
+
+def test_fine_tune_scales_every_learning_rate_only_from_a_checkpoint():
+    from dataclasses import replace
+
+    from wc.train.config import TrainConfig
+    cfg = load_section(read_params(Path(__file__).resolve().parents[1] / "params.yaml"), "train", TrainConfig)
+    scratch = replace(cfg, init_from="", fine_tune_lr_scale=0.1)
+    assert scratch.run_config() == scratch
+    tuned = replace(cfg, init_from="models/some.safetensors", fine_tune_lr_scale=0.1).run_config()
+    for before, after in ((cfg.base, tuned.base), (cfg.projection, tuned.projection)):
+        assert after.steps == before.steps and after.warmup_steps == before.warmup_steps
+        assert (after.peak_lr, after.start_lr, after.final_lr) == pytest.approx(
+            (0.1 * before.peak_lr, 0.1 * before.start_lr, 0.1 * before.final_lr))
+    with pytest.raises(ValueError, match="fine_tune_lr_scale"):
+        replace(cfg, fine_tune_lr_scale=0.0).validate()

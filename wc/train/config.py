@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from wc.train.selection import SELECT_BY
 
@@ -71,7 +71,18 @@ class TrainConfig:
     max_minutes: float = 0.0  # stop cleanly with a complete checkpoint after this wall time (0 = no limit); --resume goes on
     device: str = "cpu"  # cpu | cuda | cuda:k (torchrun: each process takes cuda:LOCAL_RANK)
     init_from: str = ""  # "" = from scratch; else fine-tune a pretrained checkpoint: a path or hf://owner/repo/file
+    fine_tune_lr_scale: float = 1.0  # with init_from: both schedules' learning rates times this (gentler steps)
     seed: int = 0
+
+    def run_config(self) -> "TrainConfig":
+        """The config a run trains with: from a pretrained checkpoint (`init_from`), every learning rate of both
+        schedules times `fine_tune_lr_scale`; from scratch, this config itself."""
+        if not self.init_from or self.fine_tune_lr_scale == 1.0:
+            return self
+        k = self.fine_tune_lr_scale
+        scaled = [replace(s, peak_lr=s.peak_lr * k, start_lr=s.start_lr * k, final_lr=s.final_lr * k)
+                  for s in (self.base, self.projection)]
+        return replace(self, base=scaled[0], projection=scaled[1])
 
     def validate(self) -> None:
         if self.window < 2:
@@ -96,6 +107,8 @@ class TrainConfig:
             raise ValueError(f"select_by must be one of {SELECT_BY}, got {self.select_by!r}")
         if not self.select_max_strain > 0:
             raise ValueError(f"select_max_strain must be positive, got {self.select_max_strain}")
+        if not self.fine_tune_lr_scale > 0:
+            raise ValueError(f"fine_tune_lr_scale must be positive, got {self.fine_tune_lr_scale}")
         if self.max_minutes < 0:
             raise ValueError(f"max_minutes must be >= 0 (0 = no limit), got {self.max_minutes}")
         for name in ("eval_every_steps", "val_windows", "holdout_block_frames", "rollout_frames", "stats_episodes", "checkpoint_every_steps"):

@@ -153,6 +153,7 @@ def train(store_path: str | Path, out_dir: str | Path, model_cfg: ModelConfig, c
     `stop_at_step`; it then returns {"complete": False, "step": ...} and `resume=True` continues it to the same
     result as an uninterrupted run (weights, optimizer, sampler, RNG streams and capacities are all restored).
     """
+    cfg = cfg.run_config()
     procs = distributed.start(cfg.device)
     started = time.monotonic()
     if cfg.tf32 and procs.device.type == "cuda":
