@@ -8,31 +8,12 @@ The work is `wc.policy_eval.stage.run` (importable, used by the tests); the envi
 wc.policy_eval.env.WorldContactLiftEnv, also a lerobot env plugin (package lerobot_env_worldcontact).
 """
 
-from __future__ import annotations
+from wc.paths import POLICY_EVAL
+from wc.policy_eval.stage import policy_eval_summary, run
+from wc.stage_cli import StageCommand
 
-import argparse
-
-from wc.cli import run_cli
-from wc.config import add_params_arguments, read_params
-from wc.policy_eval.stage import run
-
-__all__ = ["main", "run"]
-
-
-def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    add_params_arguments(parser)
-    parser.add_argument("--models-root", default="models/policy")
-    parser.add_argument("--report", default="reports/policy.json")
-    parser.add_argument("--videos", default="reports/policy_videos")
-    parser.add_argument("--table", default="reports/policy_success.csv")
-    parser.add_argument("--plot", default="reports/policy_success.png")
-    args = parser.parse_args(argv)
-    r = run(read_params(args.params, args.overrides), args.models_root, args.report, args.videos, args.table,
-            args.plot)
-    rates = ", ".join(f"{n} {p['successes']}/{p['trials']}" for n, p in r["policies"].items())
-    print(f"policy_eval: {r['task']} success {rates}; {r['timing']['wall_s']:.0f} s")
-
+COMMAND = StageCommand("policy_eval", __doc__, run, policy_eval_summary, POLICY_EVAL, keywords={"videos": "videos_dir"})
+main = COMMAND.main
 
 if __name__ == "__main__":
-    run_cli(main, "policy_eval")
+    COMMAND.cli()

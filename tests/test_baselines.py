@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import torch
 
-from stages.train_baselines import run
+from wc.baselines.baselines_stage import run
 from tests.conftest import load_params
 from wc.baselines import BASELINES, build_baseline, load_baseline, save_baseline
 from wc.baselines.config import BaselineParams

@@ -15,12 +15,13 @@ from typing import Any
 import numpy as np
 import pytest
 
-from stages.dataset import build_datasets, main
+from stages.dataset import main
 from stages.push import main as push_main
 from wc.config import ParamsError
 from wc.data.store import TrajectoryStore
 from wc.policy.comparison import FLAG
 from wc.policy.dataset import PROVENANCE_FILE, fps_of, right_arm_state_action, select_episodes
+from wc.policy.dataset_stage import build_datasets
 from wc.render.frames import RenderedStore, RenderedWriter
 from tests.conftest import load_params
 from tests.synthetic_store import write_synthetic_store

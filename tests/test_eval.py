@@ -14,7 +14,7 @@ import pytest
 import torch
 import trimesh
 
-from stages.evaluate import evaluate
+from wc.eval.stage import evaluate
 from tests.conftest import load_params
 from tests.synthetic_store import write_synthetic_store
 from wc.config import ParamsError, load_section

@@ -19,7 +19,7 @@ import pytest
 import torch
 from lerobot.datasets import LeRobotDataset
 
-from stages.finetune import run, stage_params
+from wc.policy.finetune_stage import run, stage_params
 from wc.config import ParamsError, load_section
 from wc.policy.comparison import FLAG
 from wc.policy.finetune import dataset_metadata, finetune, load_policy, policy_config

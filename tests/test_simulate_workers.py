@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import warp as wp
 
-from stages.simulate import simulate, task_key
+from wc.agent.simulate_stage import simulate, task_key
 from tests.conftest import load_params
 from wc.agent.memory import FailureMemory, Outcome
 from wc.config import ParamsError

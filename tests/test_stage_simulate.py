@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from stages.simulate import simulate
+from wc.agent.simulate_stage import simulate
 from tests.conftest import ROOT, load_params
 from wc.config import ParamsError
 from wc.data.store import TrajectoryStore

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import torch
 
-from stages.stress import stress
+from wc.eval.stress import stress
 from tests.conftest import load_params
 from tests.synthetic_store import write_synthetic_store
 from wc.config import ParamsError, load_section

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import wc.data.store as store_module
-from stages.validate import main, validate
+from stages.validate import main
 from tests.conftest import load_params
 from wc.config import ParamsError, load_section, params_hash
 from wc.data.store import TrajectoryStore, TrajectoryWriter
@@ -22,7 +22,7 @@ from wc.scene.piper import ARM_BODY_NAMES
 from wc.scene.scene import build_scene
 from wc.validate import PREDICATES
 from wc.validate.split import split_counts, split_episodes
-from wc.validate.stage import EpisodeScenes, NoAcceptedEpisodesError, episode_state
+from wc.validate.stage import EpisodeScenes, NoAcceptedEpisodesError, episode_state, validate
 
 T = 10
 HELD = {"cube": {"link": "right_link6", "local_pose": [0.0, 0.0, 0.1, 0.0, 0.0, 0.0, 1.0]}}

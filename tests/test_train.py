@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 import torch
 
-from stages.train import run
+from wc.train.train_stage import run
 from tests.conftest import default_params
 from tests.synthetic_store import write_synthetic_store
 from wc.config import ParamsError, load_section

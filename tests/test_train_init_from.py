@@ -13,7 +13,7 @@ import pytest
 import torch
 from safetensors.torch import load_file
 
-from stages.train import run
+from wc.train.train_stage import run
 from tests.conftest import default_params
 from tests.synthetic_store import write_synthetic_store
 from wc.train.warm_start import resolve_checkpoint

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import torch
 
-from stages.train import run
+from wc.train.train_stage import run
 from tests.conftest import default_params
 from wc.data.store import TrajectoryStore
 from wc.model.config import ModelConfig

@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from wc.atomic import write_atomic
+from wc.paths import SUMMARY
 from wc.reports import write_json_atomic
 
 
@@ -124,3 +125,18 @@ def write_summary(reports: Path, headline: Path, results: Path) -> dict[str, Any
     text = results_markdown(figures, gpu_reports(reports))
     write_atomic(results, lambda p: p.write_text(text))
     return figures
+
+
+def run(reports: str | Path = SUMMARY["reports"], headline: str | Path = SUMMARY["headline"],
+        results: str | Path = SUMMARY["results"]) -> dict[str, Any]:
+    """`write_summary` as the stage runs it; returns the figures and where they went."""
+    return {"figures": write_summary(Path(reports), Path(headline), Path(results)), "headline": str(headline),
+            "results": str(results)}
+
+
+def summary_line(r: dict[str, Any]) -> str:
+    """The line `python -m stages.summary` prints."""
+    figures = r["figures"]
+    missing = [k for k, v in figures.items() if v is None]
+    return (f"summary: {len(figures) - len(missing)} of {len(figures)} headline figures"
+            f"{' (missing: ' + ', '.join(missing) + ')' if missing else ''} -> {r['headline']}, {r['results']}")

@@ -38,7 +38,8 @@ class BaselineParams:
 
 @dataclass(frozen=True)
 class BaselinesConfig:
-    """Baselines trained by stages/train_baselines.py, on the split and holdout rule of the `train` section.
+    """Baselines trained by the train_baselines stage (wc/baselines/baselines_stage.py), on the split and holdout
+    rule of the `train` section.
 
     `names` are registry names (wc.baselines.BASELINES); each needs its entry in `models`.
     """

@@ -42,6 +42,7 @@ from wc.eval.predictors import CasePredictor, Predictor, WorldContactPredictor, 
 from wc.eval.stability import (CSV_HEADER, StabilityCurve, csv_rows, divergence_summary, first_divergence,
                               max_edge_strain)
 from wc.model.config import ModelConfig
+from wc.paths import EVALUATE
 from wc.reports import environment_info, write_csv_atomic, write_json_atomic
 from wc.scene.config import SceneConfig
 from wc.sim.config import SimConfig
@@ -240,9 +241,9 @@ def newton_setting(spec: MethodSpec, sim_cfg: SimConfig) -> dict[str, Any]:
             "dt_s": sim_cfg.frame_dt_s / substeps, "cloth_vertices_scale": spec.cloth_vertices_scale or 1.0}
 
 
-def evaluate(params: dict[str, Any], store_path: str | Path = "data/source/trajectories.zarr",
-             metrics: str | Path = "reports/metrics.json", stability_csv: str | Path = "reports/stability.csv",
-             stability_png: str | Path = "reports/stability.png") -> dict[str, Any]:
+def evaluate(params: dict[str, Any], store_path: str | Path = EVALUATE["store"],
+             metrics: str | Path = EVALUATE["metrics"], stability_csv: str | Path = EVALUATE["stability_csv"],
+             stability_png: str | Path = EVALUATE["stability_png"]) -> dict[str, Any]:
     """Run the held-out and long rollouts of every method; write the metrics, the stability curves and the
     speed-accuracy chart (speed_accuracy.{csv,png} beside `metrics`); return the metrics dict."""
     cfg = load_section(params, "evaluate", EvaluateConfig)
@@ -300,3 +301,21 @@ def evaluate(params: dict[str, Any], store_path: str | Path = "data/source/traje
     }
     write_json_atomic(metrics, result)
     return result
+
+
+def evaluate_summary(r: dict[str, Any]) -> str:
+    """The lines `python -m stages.evaluate` prints: one per method, one per skipped method."""
+    def fmt(value: float | None, spec: str) -> str:
+        return "diverged" if value is None else format(value, spec)
+
+    lines = [f"evaluate: {r['held_out']['rollouts']} held-out rollouts ({r['held_out']['source']}), "
+             f"{r['wall_s']:.0f} s"]
+    for name, m in r["methods"].items():
+        div = r["stability"]["methods"].get(name, {})
+        lines.append(f"  {name:28s} x MSE {fmt(m['position_mse_m2'], '.3e')} m²  "
+                     f"v MSE {fmt(m['velocity_mse_m2_s2'], '.3e')} m²/s²  "
+                     f"penetration {fmt(m.get('penetration_rate_pct'), '.2f')} % "
+                     f"(contact {fmt(m.get('contact_penetration_rate_pct'), '.2f')} %)  "
+                     f"diverged {div.get('diverged', 0)}/{div.get('rollouts', 0)} long rollouts")
+    lines += [f"  {name:28s} skipped: {why}" for name, why in r["skipped"].items()]
+    return "\n".join(lines)

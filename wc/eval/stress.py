@@ -39,6 +39,7 @@ from wc.eval.stress_config import StressConfig
 from wc.eval.stress_truth import ground_truth
 from wc.eval.video import side_by_side_video
 from wc.model.config import ModelConfig
+from wc.paths import STRESS
 from wc.reports import environment_info, pyplot, save_figure_atomic, write_csv_atomic, write_json_atomic
 from wc.scene.config import SceneConfig
 from wc.sim.config import SimConfig
@@ -233,11 +234,10 @@ def plot_stress(rows: list[dict[str, Any]], path: str | Path, strain_bound: floa
     return save_figure_atomic(fig, path)
 
 
-def stress(params: dict[str, Any], store: str | Path = "data/stress/trajectories.zarr",
-           csv: str | Path = "reports/stress.csv", png: str | Path = "reports/stress.png",
-           curves_csv: str | Path = "reports/stress_curves.csv", report: str | Path = "reports/stress.json",
-           video: str | Path = "reports/stress_video.mp4", sheet: str | Path = "reports/stress_side_by_side.png",
-           metrics: str | Path = "reports/metrics.json") -> dict[str, Any]:
+def stress(params: dict[str, Any], store: str | Path = STRESS["store"], csv: str | Path = STRESS["csv"],
+           png: str | Path = STRESS["png"], curves_csv: str | Path = STRESS["curves"],
+           report: str | Path = STRESS["report"], video: str | Path = STRESS["video"],
+           sheet: str | Path = STRESS["sheet"], metrics: str | Path = STRESS["metrics"]) -> dict[str, Any]:
     """Simulate (or reuse) the stress ground truth, roll every method out on it, write the table, figure,
     per-step curves, side-by-side video and contact sheet, and the report (returned)."""
     cfg = load_section(params, "stress", StressConfig)
@@ -297,3 +297,19 @@ def stress(params: dict[str, Any], store: str | Path = "data/stress/trajectories
     }
     write_json_atomic(report, result)
     return result
+
+
+def stress_summary(r: dict[str, Any]) -> str:
+    """The lines `python -m stages.stress` prints: one per case and method, then the video."""
+    def fmt(value: float | None, spec: str) -> str:
+        return "-" if value is None else format(value, spec)
+
+    truth = r["ground_truth"]
+    lines = [f"stress: {len(r['episodes'])} ground-truth episodes "
+             f"({'reused' if truth['reused'] else 'simulated'}), {r['wall_s']['total']:.0f} s"]
+    lines += [f"  {row['case']:20s} {row['method']:28s} x MSE {fmt(row['position_mse_m2'], '.3e')} m²  "
+              f"vs CV {fmt(row['position_mse_vs_constant_velocity'], '.2f')}  "
+              f"penetration {fmt(row['penetration_rate_pct'], '.2f')} %  strain {fmt(row['max_edge_strain'], '.2f')}  "
+              f"diverged at {fmt(row['divergence_step'], 'd')}" for row in r["table"]]
+    lines.append(f"  video: {r['video']['video']} ({r['video']['frames']} frames: {', '.join(r['video']['panels'])})")
+    return "\n".join(lines)

@@ -40,6 +40,7 @@ from wc.expand.batched_rollout import Rollout, rollout_batch
 from wc.expand.self_contact import SelfContactSeparation
 from wc.expand.untangle import SelfIntersectionGuard
 from wc.model.layout import scene_layout
+from wc.paths import EXPAND
 from wc.reports import environment_info, write_json_atomic
 from wc.scene.config import SceneConfig
 from wc.scene.scene import Scene
@@ -121,9 +122,8 @@ def _episode_attrs(planned: PlannedEpisode, source: SourceEpisode, failure: str 
             "parent": planned.parent, "yaw_deg": planned.yaw_deg, "shift_m": list(planned.shift_m), **source.layout}
 
 
-def expand(params: dict[str, Any], model_dir: str | Path = "models/worldcontact",
-           store: str | Path = "data/source/trajectories.zarr", out: str | Path = "data/expanded/trajectories.zarr",
-           report: str | Path = "reports/expand.json",
+def expand(params: dict[str, Any], model_dir: str | Path = EXPAND["model"], store: str | Path = EXPAND["store"],
+           out: str | Path = EXPAND["out"], report: str | Path = EXPAND["report"],
            rejected_out: str | Path | None = None) -> dict[str, Any]:
     """Generate and check episodes until the target is met or the attempts run out; write the accepted ones
     to `out` and the rejected ones (accepted false, first_failure their check) to `rejected_out` (None: not
@@ -258,3 +258,13 @@ def expand(params: dict[str, Any], model_dir: str | Path = "models/worldcontact"
     }
     write_json_atomic(report, result)
     return result
+
+
+def expand_summary(r: dict[str, Any]) -> str:
+    """The line `python -m stages.expand` prints."""
+    failed = ", ".join(f"{k} {v}" for k, v in r["rejections"].items() if v) or "none"
+    return (f"expand {r['task']}: {r['accepted']}/{r['generated']} generated episodes accepted "
+            f"({r['infeasible_plans']} plans infeasible); rejected: {failed}; {r['expanded_total']}/"
+            f"{r['target_trajectories']} trajectories with the {r['source_episodes']} source ones"
+            f"{'' if r['target_reached'] else ' (target NOT reached)'}; {r['trajectories_per_min']:.2f} generated/min "
+            f"on {r['device']}, {r['wall_s']:.1f} s")

@@ -12,7 +12,6 @@ store) and how far the two trajectories drift apart per frame.
 
 from __future__ import annotations
 
-import argparse
 import time
 from pathlib import Path
 from typing import Any
@@ -21,10 +20,11 @@ import numpy as np
 from tqdm import tqdm
 
 from wc.agent.runner import TaskWorld, build_task_world, execute, judge
-from wc.config import add_params_arguments, load_section, read_params
+from wc.config import load_section
 from wc.data.store import TrajectoryStore
 from wc.dynamics import ObjectState
 from wc.expand.config import ExpandConfig
+from wc.paths import TEACHER_CHECK
 from wc.reports import environment_info, write_json_atomic
 from wc.scene.config import SceneConfig
 from wc.sim.config import SimConfig
@@ -107,23 +107,18 @@ def teacher_check(params: dict[str, Any], store_path: str | Path, limit: int | N
             "environment": environment_info(sim_cfg.device)}
 
 
-def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    add_params_arguments(parser)
-    parser.add_argument("--store", default="data/expanded/trajectories.zarr")
-    parser.add_argument("--report", default="reports/teacher_check.json")
-    parser.add_argument("--rejected", default="data/expanded/rejected.zarr",
-                        help="the rejected generated episodes ('' for none: precision only)")
-    parser.add_argument("--limit", type=int, default=None, help="check the first N episodes of each store only")
-    args = parser.parse_args(argv)
-    report = teacher_check(read_params(args.params, args.overrides), args.store, args.limit, args.rejected or None)
-    write_json_atomic(args.report, report)
+def run(params: dict[str, Any], store: str | Path = TEACHER_CHECK["store"],
+        report: str | Path = TEACHER_CHECK["report"], rejected: str | Path | None = TEACHER_CHECK["rejected"], limit: int | None = None) -> dict[str, Any]:
+    """`teacher_check` of the stores `store` and `rejected` (None: accepted plans only), written to `report`."""
+    result = teacher_check(params, store, limit, rejected)
+    write_json_atomic(report, result)
+    return result
+
+
+def teacher_check_summary(report: dict[str, Any]) -> str:
+    """The line `python -m stages.teacher_check` prints."""
     if not report["plans"]:
-        print(f"teacher check: {report['note']}")
-        return
-    print(f"teacher check: {report['plans']} plans, agreement {report['agreement']:.2f}, precision "
-          f"{report['precision']}, recall {report['recall']}, mean RMS {report['mean_rms_error_m'] * 1000:.1f} mm; {report['confusion']}")
-
-
-if __name__ == "__main__":
-    main()
+        return f"teacher check: {report['note']}"
+    return (f"teacher check: {report['plans']} plans, agreement {report['agreement']:.2f}, precision "
+            f"{report['precision']}, recall {report['recall']}, mean RMS {report['mean_rms_error_m'] * 1000:.1f} mm; "
+            f"{report['confusion']}")

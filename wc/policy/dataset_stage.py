@@ -18,6 +18,7 @@ from typing import Any
 
 from wc.config import load_section, params_hash
 from wc.data.store import TrajectoryStore
+from wc.paths import DATASET
 from wc.policy.card import dataset_card
 from wc.policy.comparison import FLAG, WARNING, expanded_equals_source
 from wc.policy.dataset import EpisodeSource, check_loads, select_episodes, write_lerobot_dataset
@@ -38,12 +39,12 @@ def _open(trajectories: Path, frames: Path, what: str) -> tuple[TrajectoryStore,
 
 
 def build_datasets(params: dict[str, Any],
-                   source_trajectories: str | Path = "data/source/trajectories.zarr",
-                   source_frames: str | Path = "data/rendered/source.zarr",
-                   expanded_trajectories: str | Path = "data/expanded/trajectories.zarr",
-                   expanded_frames: str | Path = "data/rendered/expanded.zarr",
-                   out: str | Path = "data/lerobot",
-                   report: str | Path = "reports/dataset.json") -> dict[str, Any]:
+                   source_trajectories: str | Path = DATASET["source_trajectories"],
+                   source_frames: str | Path = DATASET["source_frames"],
+                   expanded_trajectories: str | Path = DATASET["expanded_trajectories"],
+                   expanded_frames: str | Path = DATASET["expanded_frames"],
+                   out: str | Path = DATASET["out"],
+                   report: str | Path = DATASET["report"]) -> dict[str, Any]:
     """Write <out>/source (and <out>/expanded) and the report; returns the report."""
     cfg = load_section(params, "dataset", DatasetConfig)
     started = time.perf_counter()
@@ -90,3 +91,10 @@ def build_datasets(params: dict[str, Any],
               "params_hash": digest, "wall_s": time.perf_counter() - started, "environment": environment_info("cpu")}
     write_json_atomic(report, result)
     return result
+
+
+def dataset_summary(result: dict[str, Any]) -> str:
+    """The lines `python -m stages.dataset` prints: one per dataset written, then the wall time."""
+    lines = [f"dataset {name}: {d['episodes']} episodes, {d['frames']} frames at {d['fps']} fps "
+             f"-> {d['path']} ({d['wall_s']:.1f} s)" for name, d in result["datasets"].items() if d is not None]
+    return "\n".join([*lines, f"dataset: {result['wall_s']:.1f} s"])

@@ -50,3 +50,11 @@ def push_dataset(root: str | Path, repo_id: str, private: bool = False) -> str:
         reason = str(err).splitlines()[0] if str(err) else type(err).__name__
         raise PushError(f"the Hub refused the push of {repo_id}: {reason}") from err
     return f"https://huggingface.co/datasets/{repo_id}"
+
+
+def push(root: str, repo_id: str, private: bool = False) -> dict[str, str]:
+    """`push_dataset` as `python -m stages.push` runs it: a PushError ends it with `push: <error>` (status 1)."""
+    try:
+        return {"root": root, "url": push_dataset(root, repo_id, private=private)}
+    except PushError as err:
+        raise SystemExit(f"push: {err}") from None

@@ -19,6 +19,7 @@ from tqdm import tqdm
 
 from wc.atomic import remove_stale_temporaries
 from wc.config import load_section, params_hash
+from wc.paths import POLICY_EVAL
 from wc.policy.comparison import FLAG, expanded_equals_source, trained_episodes
 from wc.policy.finetune import SUMMARY_FILE, load_policy
 from wc.policy.policy_config import PolicyConfig
@@ -54,9 +55,10 @@ def _summary(outcomes: list[dict[str, Any]]) -> dict[str, Any]:
             "failures": dict(sorted(failures.items())), "outcomes": outcomes}
 
 
-def run(params: dict[str, Any], models_root: str | Path = "models/policy", report: str | Path = "reports/policy.json",
-        videos_dir: str | Path = "reports/policy_videos", table: str | Path = "reports/policy_success.csv",
-        plot: str | Path = "reports/policy_success.png", progress: bool = True) -> dict[str, Any]:
+def run(params: dict[str, Any], models_root: str | Path = POLICY_EVAL["models_root"],
+        report: str | Path = POLICY_EVAL["report"], videos_dir: str | Path = POLICY_EVAL["videos"],
+        table: str | Path = POLICY_EVAL["table"], plot: str | Path = POLICY_EVAL["plot"],
+        progress: bool = True) -> dict[str, Any]:
     """Evaluate each policy of `policy.datasets` on trial seeds policy_eval.seed + [0, trials); write the
     report, videos, table and plot. Returns the report."""
     cfg = load_section(params, "policy_eval", PolicyEvalConfig)
@@ -110,3 +112,9 @@ def run(params: dict[str, Any], models_root: str | Path = "models/policy", repor
     }
     write_json_atomic(report, result)
     return result
+
+
+def policy_eval_summary(r: dict[str, Any]) -> str:
+    """The line `python -m stages.policy_eval` prints."""
+    rates = ", ".join(f"{n} {p['successes']}/{p['trials']}" for n, p in r["policies"].items())
+    return f"policy_eval: {r['task']} success {rates}; {r['timing']['wall_s']:.0f} s"

@@ -19,6 +19,7 @@ from tqdm import tqdm
 from wc.config import ParamsError, load_section, params_hash
 from wc.data.store import TrajectoryStore
 from wc.devices import resolve_warp_device
+from wc.paths import RENDER, RENDER_PAIRS
 from wc.render.config import RenderConfig
 from wc.render.contact_sheet import write_contact_sheet
 from wc.render.frames import RenderedStore, RenderedWriter
@@ -29,8 +30,7 @@ from wc.reports import environment_info, write_json_atomic
 from wc.scene.config import CameraConfig, SceneConfig
 
 SECTIONS = ["render", "scene"]
-SOURCE = ("data/source/trajectories.zarr", "data/rendered/source.zarr")
-EXPANDED = ("data/expanded/trajectories.zarr", "data/rendered/expanded.zarr")
+SOURCE, EXPANDED = RENDER_PAIRS
 
 
 def default_pairs() -> list[tuple[str, str]]:
@@ -97,8 +97,7 @@ def render_store(src: Path, out: Path, scene_cfg: SceneConfig, cfg: RenderConfig
 
 
 def render(params: dict[str, Any], pairs: Sequence[tuple[str | Path, str | Path]] | None = None,
-           report: str | Path = "reports/render.json",
-           sheet: str | Path = "reports/render_contact_sheet.png") -> dict[str, Any]:
+           report: str | Path = RENDER["report"], sheet: str | Path = RENDER["sheet"]) -> dict[str, Any]:
     """Render each (trajectory store, output store) pair (default: source, and expanded when present);
     write the report and a contact sheet of the first output. Returns the report."""
     cfg = load_section(params, "render", RenderConfig)
@@ -136,3 +135,23 @@ def render(params: dict[str, Any], pairs: Sequence[tuple[str | Path, str | Path]
     }
     write_json_atomic(report, result)
     return result
+
+
+def pairs_problem(inputs: Sequence[str] | None, outs: Sequence[str] | None) -> str | None:
+    """What is wrong with `--inputs` / `--outs` (None: nothing)."""
+    if (inputs is None) != (outs is None) or (inputs and outs is not None and len(inputs) != len(outs)):
+        return "--inputs and --outs go together, one output per input"
+    return None
+
+
+def render_inputs(params: dict[str, Any], report: str | Path = RENDER["report"], sheet: str | Path = RENDER["sheet"],
+                  inputs: Sequence[str] | None = None, outs: Sequence[str] | None = None) -> dict[str, Any]:
+    """`render` of the stores `inputs` into `outs`, one per input (None: the default pairs)."""
+    return render(params, list(zip(inputs, outs)) if inputs and outs else None, report, sheet)
+
+
+def render_summary(result: dict[str, Any]) -> str:
+    """The line `python -m stages.render` prints."""
+    speed = ", ".join(f"{n} {ms:.1f} ms" for n, ms in result["ms_per_frame"].items())
+    return (f"render: {result['episodes']} episodes, {result['frames']} frames at {result['width']}x{result['height']} "
+            f"on {result['device']} ({speed} per frame); {result['wall_s']:.1f} s; sheet {result['contact_sheet']}")

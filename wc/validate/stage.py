@@ -22,6 +22,7 @@ from tqdm import tqdm
 
 from wc.config import ParamsError, load_section, params_hash
 from wc.data.store import TrajectoryStore, copy_store
+from wc.paths import VALIDATE
 from wc.reports import environment_info, write_json_atomic
 from wc.scene.config import SceneConfig
 from wc.scene.scene import Scene, build_scene
@@ -121,9 +122,8 @@ def _rejections() -> dict[str, int]:
     return {name: 0 for name in PREDICATES}
 
 
-def validate(params: dict[str, Any], raw: str | Path = "data/source/raw.zarr",
-             out: str | Path = "data/source/trajectories.zarr",
-             report: str | Path = "reports/validate.json") -> dict[str, Any]:
+def validate(params: dict[str, Any], raw: str | Path = VALIDATE["raw"], out: str | Path = VALIDATE["out"],
+             report: str | Path = VALIDATE["report"]) -> dict[str, Any]:
     """Check every raw episode; write the accepted ones with their split to `out` (atomically) and the
     report to `report`. Returns the report."""
     cfg = load_section(params, "validate", ValidateConfig)
@@ -211,3 +211,11 @@ def validate(params: dict[str, Any], raw: str | Path = "data/source/raw.zarr",
     ids = sorted(updates, key=lambda e: (len(e), e))
     copy_store(src, out, ids, updates, created_by="stages.validate", params_hash=phash)
     return finish()
+
+
+def validate_summary(result: dict[str, Any]) -> str:
+    """The line `python -m stages.validate` prints."""
+    failed = ", ".join(f"{k} {v}" for k, v in result["rejections"].items() if v) or "none"
+    return (f"validate: {result['accepted']}/{result['episodes']} episodes accepted "
+            f"(train {result['splits']['train']}, val {result['splits']['val']}, test {result['splits']['test']}); "
+            f"rejected: {failed}; {result['wall_s']:.1f} s")
