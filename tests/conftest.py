@@ -20,8 +20,9 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def load_params(*overrides: str, file: str = "params.yaml") -> dict[str, Any]:
-    """A shipped params file (`file`, relative to the repository root) with `key.sub=value` overrides."""
-    return read_params(ROOT / file, list(overrides))
+    """A shipped params file (`file`, relative to the repository root) with `key.sub=value` overrides; training from
+    scratch (`train.init_from` ""), as the tests' small models need, unless an override names a checkpoint."""
+    return read_params(ROOT / file, ["train.init_from=''", *overrides])
 
 
 def default_params(train: dict[str, Any] | None = None) -> dict[str, Any]:

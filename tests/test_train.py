@@ -367,7 +367,7 @@ def _free_port() -> int:
 def test_two_process_ddp_on_gloo(store_path, tmp_path, static):
     """torchrun-style launch: 2 CPU processes (gloo), gradients averaged, rank 0 writes the output; both the reference
     and the static-shape path."""
-    overrides = ["--set", f"train.static={str(static).lower()}", "--set", "train.base.steps=2", "--set", "train.base.warmup_steps=1", "--set", "train.projection.steps=0", "--set", "train.projection.warmup_steps=0", "--set",
+    overrides = ["--set", "train.init_from=''", "--set", f"train.static={str(static).lower()}", "--set", "train.base.steps=2", "--set", "train.base.warmup_steps=1", "--set", "train.projection.steps=0", "--set", "train.projection.warmup_steps=0", "--set",
                  "train.eval_every_steps=2", "--set", "train.val_windows=1", "--set", "train.rollout_frames=2"]
     cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc-per-node", "2", "--master-port",
            str(_free_port()), "-m", "stages.train", "--store", str(store_path), "--out", str(tmp_path / "m"),

@@ -16,7 +16,7 @@ TRAIN_SETS=(
   --set train.val_windows=64 --set train.rollout_frames=60 --set train.select_by=rollout --set train.event_oversample=3.0
   --set train.per_axis_scales=true --set train.checkpoint_every_steps=1000 --set train.autocast_bf16=true
   --set train.tf32=true --set train.static=true --set train.compile=${COMPILE:-false} --set train.cuda_graph=true
-  --set train.device=cuda ${EXTRA_TRAIN_SETS:-})
+  --set train.device=cuda --set "train.init_from='${INIT_FROM:-}'" ${EXTRA_TRAIN_SETS:-})
 # the expansion and teacher check on the GPU (issue19_expand.sh)
 EXP_SETS=(--set expand.target_trajectories=${TARGET:-150} --set expand.max_minutes=${EXPAND_MINUTES:-3.5} --set expand.max_attempts=${ATTEMPTS_EXPAND:-600}
   --set expand.batch_size=${EXPAND_BATCH:-64} --set expand.device=cuda --set validate.device=cuda --set sim.device=cuda
