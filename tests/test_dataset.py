@@ -208,6 +208,20 @@ def test_an_expansion_without_generated_episodes_is_flagged_or_refused(tmp_path:
 
 
 @pytest.mark.slow
+def test_a_control_arm_takes_its_own_name(tmp_path: Path, params: dict[str, Any], inputs: dict[str, Path]) -> None:
+    """dataset.expanded_arm names the second dataset: the source + another store's episodes (e.g. fresh Newton ones)
+    as a control arm beside the expanded one; no source-vs-expanded flag, since it is not that comparison."""
+    control = copy.deepcopy(params)
+    control["dataset"]["expanded_arm"] = "newton_150"
+    report = build_datasets(control, **inputs, out=tmp_path / "lerobot", report=tmp_path / "r.json")
+    assert sorted(report["datasets"]) == ["newton_150", "source"] and report[FLAG] is None
+    assert report["datasets"]["newton_150"]["episodes"] == report["datasets"]["source"]["episodes"] + 2
+    assert report["datasets"]["newton_150"]["repo_id"].endswith("/newton_150")
+    assert sorted(p.name for p in (tmp_path / "lerobot").iterdir()) == ["newton_150", "source"]
+    assert _load(tmp_path / "lerobot", "newton_150").num_episodes == report["datasets"]["newton_150"]["episodes"]
+
+
+@pytest.mark.slow
 def test_source_only_from_the_cli_h264_without_streaming(tmp_path: Path, inputs: dict[str, Path]) -> None:
     main(["--set", "dataset.include_expanded=false", "--set", "dataset.task=carry",
           "--set", "dataset.splits=[test]", "--set", "dataset.video_codec=h264",
@@ -240,6 +254,10 @@ def test_bad_params_name_the_key(params: dict[str, Any], inputs: dict[str, Path]
     bad = copy.deepcopy(params)
     bad["dataset"]["splits"] = ["train", "holdout"]
     with pytest.raises(ParamsError, match="dataset.splits"):
+        build_datasets(bad, **inputs, out=tmp_path, report=tmp_path / "r.json")
+    bad = copy.deepcopy(params)
+    bad["dataset"]["expanded_arm"] = "source"  # would overwrite the source dataset
+    with pytest.raises(ParamsError, match="dataset.expanded_arm"):
         build_datasets(bad, **inputs, out=tmp_path, report=tmp_path / "r.json")
 
 

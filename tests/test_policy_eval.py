@@ -25,7 +25,8 @@ from wc.policy_eval.config import PolicyEvalConfig
 from wc.policy_eval.env import WorldContactLiftEnv
 from wc.policy_eval.closed_loop import OracleActor, run_episode
 from wc.policy_eval.stage import policy_dirs, run
-from wc.policy_eval.success import LiftHoldMonitor, first_success, hold_frames
+from wc.policy_eval.success import LiftHoldMonitor, first_success, hold_frames, wilson_interval
+from wc.policy_eval.trials import run_trials, trial_jobs
 
 SIZE = 32  # px: both cameras
 ORACLE_SEED = 2  # a trial whose planned program lifts the bag (lowest vertex > 5 cm from frame 64) at the default physics
@@ -160,28 +161,50 @@ def _tiny_act(path: Path, seed: int) -> None:
 
 
 @pytest.mark.slow
-def test_stage_end_to_end(tmp_path: Path) -> None:
+def test_stage_end_to_end_in_worker_processes(tmp_path: Path) -> None:
+    """Two policies x two trials in two worker processes: the report, videos, table and plot, and the same
+    outcomes as the trials run in this process."""
     for i, name in enumerate(("source", "expanded")):
         _tiny_act(tmp_path / "models" / name, seed=i)
         (tmp_path / "models" / name / SUMMARY_FILE).write_text(json.dumps({"episodes": 3}))  # as finetune records
-    params = _params(trials=1, seed=ORACLE_SEED, max_steps=2, videos=1)
+    params = _params(trials=2, seed=ORACLE_SEED, max_steps=2, videos=1, workers=2)
     paths = dict(report=tmp_path / "policy.json", videos_dir=tmp_path / "videos", table=tmp_path / "rates.csv",
                  plot=tmp_path / "rates.png")
     report = run(params, tmp_path / "models", progress=False, **paths)
     saved = json.loads(paths["report"].read_text())
-    assert saved["seeds"] == [ORACLE_SEED] and set(saved["success_rate"]) == {"source", "expanded"}
+    assert saved["seeds"] == [ORACLE_SEED, ORACLE_SEED + 1] and set(saved["success_rate"]) == {"source", "expanded"}
     assert saved[FLAG] is True  # both trained on 3 episodes: no generated one
     for name in ("source", "expanded"):
-        trial = saved["policies"][name]["outcomes"][0]
-        assert trial["seed"] == ORACLE_SEED and trial["steps"] <= 2 and trial["success"] is False
-        assert trial["failure"] in ("not_lifted", "non_finite") and Path(trial["video"]).is_file()
-        assert saved["successes"][name] == 0
+        policy = saved["policies"][name]
+        assert [t["seed"] for t in policy["outcomes"]] == saved["seeds"] and policy["episodes"] == 3
+        first = policy["outcomes"][0]
+        assert first["steps"] <= 2 and first["success"] is False and Path(first["video"]).is_file()
+        assert first["failure"] in ("not_lifted", "non_finite") and "video" not in policy["outcomes"][1]
+        assert saved["successes"][name] == 0 and policy["ci95"] == pytest.approx(list(wilson_interval(0, 2)))
     videos = sorted(p.name for p in paths["videos_dir"].iterdir())
     assert videos == [f"expanded_trial00_seed{ORACLE_SEED}.mp4", f"source_trial00_seed{ORACLE_SEED}.mp4"]
-    assert paths["table"].read_text().splitlines()[0] == "policy,successes,trials,success_rate"
+    assert paths["table"].read_text().splitlines()[0] == "policy,successes,trials,success_rate,ci95_low,ci95_high"
     assert paths["plot"].stat().st_size > 0 and report["params_hash"] == saved["params_hash"]
-    assert report["timing"]["s_per_step"]["source"] > 0
+    assert report["timing"]["s_per_step"]["source"] > 0 and report["timing"]["workers"] == 2
+    assert report["timing"]["env_seconds"]["physics"] > 0 and report["timing"]["policy_load_s"]["expanded"] > 0
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temporary left behind
+    here = run_trials(params, trial_jobs({"source": tmp_path / "models" / "source"}, saved["seeds"], 0),
+                      tmp_path / "unused", workers=1)
+    assert [r.outcome for r in here] == [{k: v for k, v in o.items() if k != "video"}
+                                         for o in saved["policies"]["source"]["outcomes"]]
+
+
+def test_wilson_interval() -> None:
+    low, high = wilson_interval(13, 20)  # the paper's source-only 13/20
+    assert (round(low, 3), round(high, 3)) == (0.433, 0.819)
+    assert wilson_interval(0, 50)[0] == 0.0 and 0 < wilson_interval(0, 50)[1] < 0.1
+    assert wilson_interval(50, 50)[1] == 1.0 and 0.9 < wilson_interval(50, 50)[0] < 1.0
+    for k in range(0, 21, 5):  # contains the rate, narrows with more trials
+        low, high = wilson_interval(k, 20)
+        assert low <= k / 20 <= high
+        assert wilson_interval(5 * k, 100)[1] - wilson_interval(5 * k, 100)[0] < high - low
+    with pytest.raises(ValueError, match="successes <= trials"):
+        wilson_interval(3, 2)
 
 
 def test_the_plot_title_says_when_the_arms_are_the_same() -> None:

@@ -26,6 +26,8 @@ class DatasetConfig:
     video_gop_frames: int  # keyframe interval; small keeps random frame access cheap
     encoder_threads: int  # threads per video encoder (0: let the codec decide)
     streaming_encoding: bool  # encode frames as they are added (no PNG round trip) instead of after each episode
+    expanded_arm: str = "expanded"  # name of the dataset source + expanded-store episodes; another name builds a
+    # control arm from another store, e.g. newton_150 = the source + fresh Newton episodes (policy comparison)
 
     def validate(self) -> None:
         for name in ("task", "instruction", "robot_type"):
@@ -37,6 +39,9 @@ class DatasetConfig:
         if bad or len(set(self.splits)) != len(self.splits):
             raise ValueError(f"dataset.splits must be distinct names from {[s for s in SPLITS if s]}, got "
                              f"{list(self.splits)}")
+        if not _REPO_RE.match(self.expanded_arm) or self.expanded_arm == "source":
+            raise ValueError(f"dataset.expanded_arm must be letters, digits, '_', '.', '-' and not 'source', got "
+                             f"{self.expanded_arm!r}")
         if not _REPO_RE.match(self.repo_owner):
             raise ValueError(f"dataset.repo_owner must be letters, digits, '_', '.', '-', got {self.repo_owner!r}")
         if self.video_codec not in VIDEO_CODECS:

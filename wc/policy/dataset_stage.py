@@ -2,6 +2,7 @@
 
     <out>/source    accepted source episodes of params `dataset.task` in `dataset.splits`
     <out>/expanded  the same source episodes + every accepted episode of that task in the expanded store
+                    (named by `dataset.expanded_arm`: a control arm from another store, e.g. newton_150)
 
 Both read their camera views from the rendered-frames stores of the `render` stage. With
 `dataset.include_expanded` true (the default) missing expanded inputs are an error, raised before
@@ -75,11 +76,11 @@ def build_datasets(params: dict[str, Any],
         if not expanded:  # the pipeline goes on, and the reports flag the comparison as hollow
             print(f"dataset: WARNING no accepted {cfg.task!r} episodes in {paths['expanded trajectories']} "
                   f"(skipped: {skipped['expanded']}); {WARNING}", flush=True)
-        plan["expanded"] = source + expanded
+        plan[cfg.expanded_arm] = source + expanded
 
-    datasets: dict[str, Any] = {"source": None, "expanded": None}
+    datasets: dict[str, Any] = {"source": None, cfg.expanded_arm: None}
     for name, episodes in plan.items():
-        inputs = {role: str(p) for role, p in paths.items() if name == "expanded" or role.startswith("source")}
+        inputs = {role: str(p) for role, p in paths.items() if name != "source" or role.startswith("source")}
         summary = write_lerobot_dataset(out / name, f"{cfg.repo_owner}/{name}", episodes, cfg,
                                         lambda s, inputs=inputs: dataset_card(s, params_hash=digest, inputs=inputs))
         check_loads(out / name, summary["repo_id"], summary["episodes"], summary["frames"])
@@ -87,7 +88,7 @@ def build_datasets(params: dict[str, Any],
     counts = {name: summary["episodes"] for name, summary in datasets.items() if summary is not None}
     result = {FLAG: expanded_equals_source(counts), "datasets": datasets, "skipped_episodes": skipped,
               "include_expanded": cfg.include_expanded,
-              "generated_episodes": len(plan["expanded"]) - len(source) if "expanded" in plan else None,
+              "generated_episodes": len(plan[cfg.expanded_arm]) - len(source) if cfg.expanded_arm in plan else None,
               "params_hash": digest, "wall_s": time.perf_counter() - started, "environment": environment_info("cpu")}
     write_json_atomic(report, result)
     return result

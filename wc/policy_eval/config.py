@@ -21,6 +21,7 @@ class PolicyEvalConfig:
     max_steps: int | None  # steps per episode; null: the task program's own length plus the hold
     device: str  # simulator, renderer and policy: cpu | cuda | cuda:k | auto
     videos: int  # episodes recorded as mp4 per policy (the first trials)
+    workers: int = 1  # processes running trials side by side (each its own env; on a GPU they share it)
 
     def validate(self) -> None:
         if self.trials < 1:
@@ -38,6 +39,8 @@ class PolicyEvalConfig:
             raise ValueError(f"hold_s must be >= 0, got {self.hold_s}")
         if self.max_steps is not None and self.max_steps < 1:
             raise ValueError(f"max_steps must be >= 1 or null, got {self.max_steps}")
+        if self.workers < 1:
+            raise ValueError(f"workers must be >= 1, got {self.workers}")
         if self.videos < 0:
             raise ValueError(f"videos must be >= 0, got {self.videos}")
         check_device_name(self.device)

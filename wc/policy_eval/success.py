@@ -1,5 +1,5 @@
 """The lift success predicate: the bag's lowest vertex stays `lift_height_m` above the table top for
-`hold_s` without a break (a streak of lifted frames spanning hold_s)."""
+`hold_s` without a break (a streak of lifted frames spanning hold_s); and the confidence interval of a success rate."""
 
 from __future__ import annotations
 
@@ -46,3 +46,15 @@ def first_success(heights_m: Iterable[float], lift_height_m: float, hold: int) -
         if monitor.update(float(h)):
             return k
     return None
+
+
+def wilson_interval(successes: int, trials: int, z: float = 1.96) -> tuple[float, float]:
+    """Wilson score interval of a success rate (z = 1.96: 95 %); unlike the normal approximation it stays inside
+    [0, 1] and is not empty at 0 or `trials` successes."""
+    if trials < 1 or not 0 <= successes <= trials:
+        raise ValueError(f"need 0 <= successes <= trials and trials >= 1, got {successes} / {trials}")
+    p, n = successes / trials, trials
+    denominator = 1 + z * z / n
+    centre = (p + z * z / (2 * n)) / denominator
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / denominator
+    return max(0.0, centre - half), min(1.0, centre + half)
