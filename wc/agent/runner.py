@@ -27,7 +27,7 @@ from wc.seeds import episode_seed
 from wc.sim.config import SimConfig
 from wc.sim.kinematic import pose_twists, transform_points
 from wc.sim.newton_sim import NewtonSimulator
-from wc.tasks.base import EpisodeSpec, InfeasibleEpisode, Task
+from wc.tasks.base import UNREACHABLE, EpisodeSpec, InfeasibleEpisode, Task
 from wc.tasks.motion import ARM_COLUMNS
 from wc.validate import ValidateConfig, first_failure
 
@@ -260,8 +260,8 @@ def run_episodes(world: TaskWorld, planner: Planner, task_index: int, wanted: in
         attempts += batch
         runnable, unreachable = reset_batch(world, specs)
         for spec in unreachable:
-            planner.record(spec, "unreachable")
-            yield EpisodeRecord(spec, "unreachable")
+            planner.record(spec, UNREACHABLE)
+            yield EpisodeRecord(spec, UNREACHABLE)
         if not runnable:
             continue
         results, actions, release = execute(world, [r[1] for r in runnable], [r[2] for r in runnable], on_frame)

@@ -39,7 +39,7 @@ from wc.scene.config import SceneConfig
 from wc.seeds import episode_seed
 from wc.sim.config import SimConfig
 from wc.sim.newton_sim import NewtonSimulator
-from wc.tasks.base import get_task
+from wc.tasks.base import UNREACHABLE, get_task
 from wc.validate import ValidateConfig
 
 TRUTH_SECTIONS = ["stress_truth", "scene", "sim", "tasks", "validate"]
@@ -99,8 +99,8 @@ def simulate_case(params: dict[str, Any], cfg: StressConfig, name: str, index: i
         spec = planner.propose(task, episode_seed(cfg.seed, index, attempt))
         runnable, _ = reset_batch(world, [spec])
         if not runnable:
-            planner.record(spec, "unreachable")
-            attempts.append("unreachable")
+            planner.record(spec, UNREACHABLE)
+            attempts.append(UNREACHABLE)
             continue
         _, state, actions = runnable[0]
         actions = cut_actions(task, actions, cfg.rollout_frames + 1, name)

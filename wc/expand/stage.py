@@ -46,14 +46,13 @@ from wc.scene.config import SceneConfig
 from wc.scene.scene import Scene
 from wc.sim.config import SimConfig
 from wc.seeds import SeedStream, episode_seed
-from wc.tasks.base import InfeasibleEpisode, Task, get_task
+from wc.tasks.base import UNREACHABLE, InfeasibleEpisode, Task, get_task
 from wc.train.config import TrainConfig
 from wc.validate.config import ValidateConfig
 from wc.validate.predicates import PREDICATES, Episode, blow_up_detail, first_failure
 from wc.validate.stage import EpisodeScenes
 
 SECTIONS = ["expand", "scene", "tasks", "validate", "train", "sim"]
-UNREACHABLE = "unreachable"  # the planner's name for an episode that could not be planned (as in simulate)
 
 
 def verdict(task: Task, scene: Scene, task_check: bool, planned: PlannedEpisode, r: Rollout,

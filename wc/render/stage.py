@@ -42,10 +42,10 @@ def select_episodes(store: TrajectoryStore, tasks: Sequence[str] | None) -> list
     """Ids of the store's accepted episodes to render: all, or those of the given tasks (error if none match;
     an empty store, e.g. an expansion that accepted nothing, renders to an empty frames store). Episodes kept
     for world-model training only (`accepted` false: validate.train_on_task_failures) are not rendered."""
-    ids = [e for e in store.episode_ids if store.episode_attrs(e)["accepted"] is not False
-           and (tasks is None or store.episode_attrs(e)["task"] in tasks)]
+    attrs = {e: store.episode_attrs(e) for e in store.episode_ids}
+    ids = [e for e, a in attrs.items() if a["accepted"] is not False and (tasks is None or a["task"] in tasks)]
     if not ids and store.episode_ids:
-        present = sorted({store.episode_attrs(e)["task"] for e in store.episode_ids})
+        present = sorted({a["task"] for a in attrs.values()})
         raise ValueError(f"{store.path}: no episode to render (render.tasks {list(tasks or [])}; "
                          f"tasks in the store: {present})")
     return ids

@@ -15,6 +15,9 @@ from wc.dynamics import ObjectState
 from wc.scene.scene import Scene
 
 
+UNREACHABLE = "unreachable"  # the outcome of an episode whose program could not be planned (no IK solution)
+
+
 class InfeasibleEpisode(ValueError):
     """The task cannot plan this episode (e.g. a target out of the robot's reach)."""
 

@@ -26,13 +26,14 @@ from wc.paths import VALIDATE
 from wc.reports import environment_info, write_json_atomic
 from wc.scene.config import SceneConfig
 from wc.scene.scene import Scene, build_scene
+from wc.tasks.base import UNREACHABLE
 from wc.validate.config import ValidateConfig
 from wc.validate.predicates import PREDICATES, first_failure
 from wc.validate.split import SPLITS, split_episodes
 
 SECTIONS = ["validate", "scene"]
 UNSPECIFIED = "unspecified"  # reason counted for a raw episode rejected without a logged first_failure
-NOT_TASK_VERDICTS = {UNSPECIFIED, "unreachable", *PREDICATES}  # reasons that are not a task's own verdict
+NOT_TASK_VERDICTS = {UNSPECIFIED, UNREACHABLE, *PREDICATES}  # reasons that are not a task's own verdict
 MESH_ATOL_M = 1e-6  # rebuilt rest meshes must match the store's to this
 
 
