@@ -31,7 +31,8 @@ from wc.scene.scene import build_scene
 from wc.train.checkpoint import save_weights
 from wc.train.config import TrainConfig
 from wc.train.data import episode_phases, read_phase_window
-from wc.validate.predicates import convex_depth, convex_planes, quat_matrices, robot_boxes
+from wc.rotations import quat_matrices
+from wc.validate.predicates import convex_depth, convex_planes, robot_boxes
 
 DT = 0.04
 

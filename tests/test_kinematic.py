@@ -2,7 +2,8 @@
 
 import numpy as np
 
-from wc.sim.kinematic import interpolate_actions, pose_twists, quat_rotate, transform_points
+from wc.rotations import quat_rotate
+from wc.sim.kinematic import interpolate_actions, pose_twists, transform_points
 from wc.sim.rigid_fit import rigid_pose_from_vertices
 
 

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+from wc.rotations import quat_matrices, quat_matrices_torch
 from wc.scene import piper as P
 from wc.scene.ik import solve_tool_ik
 from wc.scene.robot_geometry import LinkShape, link_surface_samples, piper_link_shapes, shape_surface_samples
@@ -82,7 +83,7 @@ def test_tool_z_points_along_the_fingers():
     approach = pos - poses[:, 5, :3]  # link6 origin (flange) -> TCP
     approach = approach / torch.linalg.vector_norm(approach, dim=-1, keepdim=True)
     torch.testing.assert_close(approach, rot[..., :, 2], atol=1e-5, rtol=0)
-    torch.testing.assert_close(P.quat_to_matrix(quat), rot, atol=1e-5, rtol=0)
+    torch.testing.assert_close(quat_matrices_torch(quat), rot, atol=1e-5, rtol=0)
     torch.testing.assert_close(P.tool_pose(torch.from_numpy(q), torch.from_numpy(opening), IDENTITY_POSE)[:, :3], pos)
 
 
@@ -144,7 +145,7 @@ def test_arm_poses_from_action_places_arms_at_their_bases():
 def test_ik_converges_on_reachable_top_down_grasps(base):
     # relative to the base, in the base frame's axes
     targets_rel = torch.tensor([[0.0, 0.30, 0.0], [0.10, 0.25, 0.05], [0.30, 0.0, 0.0], [0.20, -0.20, -0.05]])
-    base_rot = P.quat_to_matrix(base[3:])
+    base_rot = quat_matrices_torch(base[3:])
     targets = base[:3] + targets_rel @ base_rot.T
     rot = (base_rot @ TOP_DOWN).expand(4, 3, 3)
     q, pos_err, rot_err = solve_tool_ik(targets, rot, torch.tensor(P.HOME_Q).expand(4, 6), base, opening=0.03)
@@ -167,7 +168,7 @@ def test_ik_reports_unreachable_top_down_targets():
 
 def shape_frame(shape: LinkShape, points: np.ndarray, normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Link-frame points and normals in the primitive's own frame."""
-    rot = P.quat_to_matrix_np(np.asarray(shape.local_quat_xyzw))
+    rot = quat_matrices(np.asarray(shape.local_quat_xyzw))
     return (points - shape.local_pos) @ rot, normals @ rot
 
 

@@ -9,10 +9,11 @@ import pytest
 import warp as wp
 
 from tests.conftest import load_params
+from wc.rotations import quat_matrices
 from wc.scene.scene import build_scene
 from wc.validate import PREDICATES, ValidateConfig, first_failure
 from wc.validate.predicates import (
-    box_signed_distance, convex_depth, convex_planes, finger_pad_boxes, quat_matrices, rigid_frames,
+    box_signed_distance, convex_depth, convex_planes, finger_pad_boxes, rigid_frames,
 )
 from wc.validate.self_intersection import crossing_edges, unique_edges
 

@@ -19,7 +19,7 @@ from wc.baselines.base import Graph, ParticleDynamics, StepInput, node_types, ra
 from wc.baselines.config import BaselineParams
 from wc.baselines.losses import chamfer, emd
 from wc.baselines.propnet import WIDTH, PropNet, mlp
-from wc.scene.piper import quat_rotate
+from wc.rotations import quat_rotate_torch
 
 PSTEP = 2
 EMD_WEIGHT, CHAMFER_WEIGHT = 0.9, 0.1
@@ -68,7 +68,7 @@ class RoboCraft(ParticleDynamics):
         out = self.rigid_head(pooled / count)
         q = F.normalize(out[..., :4] + torch.tensor([0.0, 0.0, 0.0, 1.0], device=p.device), dim=-1)
         c = centre[:, object_id]
-        return c + quat_rotate(q[:, object_id], p - c) + out[..., 4:][:, object_id] * self.displacement_std
+        return c + quat_rotate_torch(q[:, object_id], p - c) + out[..., 4:][:, object_id] * self.displacement_std
 
     @staticmethod
     def _contact_mode(graph: Graph, bsz: int) -> torch.Tensor:

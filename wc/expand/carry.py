@@ -14,7 +14,7 @@ import torch
 from torch import Tensor
 
 from wc.scene.scene import Scene
-from wc.sim.kinematic import quat_conjugate, quat_rotate
+from wc.rotations import quat_conjugate, quat_rotate
 from wc.validate.predicates import OPENING_COLUMNS, box_signed_distance, cloth_rows, finger_pad_boxes
 
 def held_between_pads(scene: Scene, x: np.ndarray, link_poses: np.ndarray, radius_m: float) -> np.ndarray:

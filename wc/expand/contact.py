@@ -29,7 +29,8 @@ from torch import Tensor
 from wc.eval.predictors import Predictor
 from wc.model.layout import SceneLayout
 from wc.scene.scene import Scene
-from wc.validate.predicates import Episode, cloth_rows, convex_planes, quat_matrices, rigid_poses, robot_boxes
+from wc.rotations import quat_matrices
+from wc.validate.predicates import Episode, cloth_rows, convex_planes, rigid_poses, robot_boxes
 
 BOX_NORMALS = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], np.float64)
 

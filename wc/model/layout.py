@@ -14,7 +14,7 @@ import torch
 
 from wc.data.store import TrajectoryStore
 from wc.model.projection import edges_from_faces
-from wc.scene.piper import quat_rotate
+from wc.rotations import quat_rotate_torch
 
 
 @dataclass
@@ -107,9 +107,9 @@ def boundary_samples(layout: SceneLayout, poses_now: torch.Tensor, poses_next: t
     at_next = poses_next[:, layout.sample_body]  # (B, M, 7)
     at_now = poses_now[:, layout.sample_body]
     local = layout.sample_points.expand_as(at_next[..., :3])
-    x_next = at_next[..., :3] + quat_rotate(at_next[..., 3:], local)
-    x_now = at_now[..., :3] + quat_rotate(at_now[..., 3:], local)
-    normals = quat_rotate(at_next[..., 3:], layout.sample_normals.expand_as(local))
+    x_next = at_next[..., :3] + quat_rotate_torch(at_next[..., 3:], local)
+    x_now = at_now[..., :3] + quat_rotate_torch(at_now[..., 3:], local)
+    normals = quat_rotate_torch(at_next[..., 3:], layout.sample_normals.expand_as(local))
     tags = layout.sample_tags.expand(x_next.shape[0], -1)[..., None]
     attributes = torch.cat([tags, normals], dim=-1)
     v = (x_next - x_now) / dt

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from wc.scene.config import CameraConfig
-from wc.sim.kinematic import quat_rotate
+from wc.rotations import quat_rotate
 
 
 def look_at_rotation(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:

@@ -25,6 +25,8 @@ from functools import lru_cache
 import numpy as np
 import torch
 
+from wc.rotations import quat_matrices, quat_matrices_torch, quat_rotate_torch
+
 LINK_NAMES: tuple[str, ...] = ("link1", "link2", "link3", "link4", "link5", "link6", "finger_a", "finger_b")
 ARM_BODY_NAMES: tuple[str, ...] = tuple(f"{side}_{n}" for side in ("left", "right") for n in LINK_NAMES)
 ACTION_DIM = 14  # [q_L (6), d_L, q_R (6), d_R]
@@ -94,29 +96,9 @@ AXES = np.array([j.axis for j in CHAIN], dtype=np.float32)  # (8, 3)
 _PARENT_INDEX = tuple(-1 if j.parent == "base_link" else LINK_NAMES.index(j.parent) for j in CHAIN)
 
 
-# ---- quaternion helpers (xyzw, broadcasting over leading dims) ----
-
-def quat_rotate(q: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
-    """Rotate vectors v [..., 3] by unit xyzw quaternions q [..., 4]."""
-    u, w = q[..., :3], q[..., 3:]
-    t = 2.0 * torch.linalg.cross(u, v, dim=-1)
-    return v + w * t + torch.linalg.cross(u, t, dim=-1)
-
-
-def quat_to_matrix(q: torch.Tensor) -> torch.Tensor:
-    """Rotation matrices [..., 3, 3] (columns = rotated frame axes) of unit xyzw quaternions [..., 4]."""
-    x, y, z, w = q.unbind(-1)
-    rows = (
-        (1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)),
-        (2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)),
-        (2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)),
-    )
-    return torch.stack([torch.stack(r, dim=-1) for r in rows], dim=-2)
-
-
 def transform_point(pose: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
     """Map points p [..., 3] from a body frame to the world by poses [..., 7]."""
-    return pose[..., :3] + quat_rotate(pose[..., 3:], p)
+    return pose[..., :3] + quat_rotate_torch(pose[..., 3:], p)
 
 
 def _check_last_dim(x: torch.Tensor, n: int, name: str) -> None:
@@ -134,15 +116,10 @@ def _skew(a: np.ndarray) -> np.ndarray:
     return np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
 
 
-def quat_to_matrix_np(q: np.ndarray) -> np.ndarray:
-    """Rotation matrices [..., 3, 3] of xyzw quaternions [..., 4], numpy float64."""
-    return quat_to_matrix(torch.as_tensor(np.asarray(q, dtype=np.float64))).numpy()
-
-
 # Per joint, as row-vector operators so a step is a few batched matmuls (few ops keep autograd cheap):
 # quat * origin_quat = quat @ _ORIGIN_QMAT_T; quat * (axis sin(v/2), cos(v/2)) = cos quat + sin quat @ _AXIS_QMAT_T;
 # rot @ R_axis(v) = rot + sin(v) rot @ K + (1 - cos(v)) rot @ K^2 (Rodrigues).
-_ORIGIN_ROT = np.stack([quat_to_matrix_np(q) for q in ORIGIN_QUAT_XYZW.astype(np.float64)])
+_ORIGIN_ROT = np.stack([quat_matrices(q) for q in ORIGIN_QUAT_XYZW.astype(np.float64)])
 _ORIGIN_QMAT_T = np.stack([_right_multiply_matrix(q).T for q in ORIGIN_QUAT_XYZW.astype(np.float64)])
 _AXIS_QMAT_T = np.stack([_right_multiply_matrix(np.append(a, 0.0)).T for a in AXES.astype(np.float64)])
 _AXIS_K = np.stack([_skew(a) for a in AXES.astype(np.float64)])
@@ -187,7 +164,7 @@ def chain_frames(
     values = torch.cat((q, j7[..., None], j8[..., None]), dim=-1)[..., None]  # [..., 8, 1]
     base_pose = torch.as_tensor(base_pose, device=q.device, dtype=q.dtype)
     base_quat = base_pose[..., 3:].expand(*batch, 4)
-    base = (base_pose[..., :3].expand(*batch, 3), quat_to_matrix(base_quat), base_quat)
+    base = (base_pose[..., :3].expand(*batch, 3), quat_matrices_torch(base_quat), base_quat)
 
     frames: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = []
     for i, spec in enumerate(CHAIN):

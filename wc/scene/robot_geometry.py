@@ -14,7 +14,8 @@ from typing import Literal
 
 import numpy as np
 
-from wc.scene.piper import CHAIN, LINK_NAMES, PAD_CENTRE_IN_FINGER_M, PAD_HALF_EXTENTS_M, quat_to_matrix_np
+from wc.rotations import quat_matrices
+from wc.scene.piper import CHAIN, LINK_NAMES, PAD_CENTRE_IN_FINGER_M, PAD_HALF_EXTENTS_M
 
 ARM_HALF_WIDTH_M = 0.035  # upper arm
 FOREARM_HALF_WIDTH_M = 0.03  # forearm, wrist
@@ -114,7 +115,7 @@ def shape_surface_samples(shape: LinkShape, spacing_m: float) -> tuple[np.ndarra
         p, n = _capsule_samples(*shape.size, spacing_m)
     else:
         raise ValueError(f"unknown shape kind {shape.kind!r}, expected 'box' or 'capsule'")
-    rot = quat_to_matrix_np(np.asarray(shape.local_quat_xyzw, dtype=np.float64))
+    rot = quat_matrices(np.asarray(shape.local_quat_xyzw, dtype=np.float64))
     return (p @ rot.T + shape.local_pos).astype(np.float32), (n @ rot.T).astype(np.float32)
 
 

@@ -19,7 +19,7 @@ from wc.scene.piper import ARM_BODY_NAMES, arm_poses_from_action
 from wc.scene.rigid import make_cube, make_sphere
 from wc.scene.robot_geometry import LinkShape, link_surface_samples, piper_link_shapes
 from wc.scene.table import TableSpec, table_env_samples
-from wc.sim.kinematic import quat_multiply, quat_rotate
+from wc.rotations import quat_multiply, quat_rotate
 
 OBJECT_KINDS = {"bag": "cloth", "sphere": "rigid", "cube": "rigid"}
 

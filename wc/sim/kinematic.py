@@ -4,33 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 
+from wc.rotations import quat_conjugate, quat_multiply, quat_rotate
+
 
 def interpolate_actions(action_now: np.ndarray, action_next: np.ndarray, substeps: int) -> np.ndarray:
     """Commanded actions at the end of each substep between two frames: (substeps, A)."""
     alpha = (np.arange(1, substeps + 1, dtype=np.float64) / substeps)[:, None]
     return ((1.0 - alpha) * action_now[None] + alpha * action_next[None]).astype(np.float32)
-
-
-def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamilton product of xyzw quaternions, broadcasting over leading axes."""
-    ax, ay, az, aw = np.moveaxis(a, -1, 0)
-    bx, by, bz, bw = np.moveaxis(b, -1, 0)
-    return np.stack([aw * bx + ax * bw + ay * bz - az * by,
-                     aw * by - ax * bz + ay * bw + az * bx,
-                     aw * bz + ax * by - ay * bx + az * bw,
-                     aw * bw - ax * bx - ay * by - az * bz], axis=-1)
-
-
-def quat_conjugate(q: np.ndarray) -> np.ndarray:
-    """Conjugate (the inverse of a unit quaternion) of xyzw quaternions q (..., 4), in q's dtype."""
-    return q * np.array([-1.0, -1.0, -1.0, 1.0], q.dtype)
-
-
-def quat_rotate(q: np.ndarray, p: np.ndarray) -> np.ndarray:
-    """Rotate points p (..., 3) by xyzw quaternions q (..., 4)."""
-    u, w = q[..., :3], q[..., 3:4]
-    t = 2.0 * np.cross(u, p)
-    return p + w * t + np.cross(u, t)
 
 
 def pose_twists(poses_prev: np.ndarray, poses: np.ndarray, dt: float) -> np.ndarray:
@@ -39,9 +19,7 @@ def pose_twists(poses_prev: np.ndarray, poses: np.ndarray, dt: float) -> np.ndar
     poses: (..., 7) pos + quat xyzw. Angular velocity from the relative rotation's axis-angle.
     """
     lin = (poses[..., :3] - poses_prev[..., :3]) / dt
-    q_prev_inv = poses_prev[..., 3:].copy()
-    q_prev_inv[..., :3] *= -1.0
-    dq = quat_multiply(poses[..., 3:], q_prev_inv)
+    dq = quat_multiply(poses[..., 3:], quat_conjugate(poses_prev[..., 3:]))
     dq = np.where(dq[..., 3:4] < 0.0, -dq, dq)  # shortest arc
     sin_half = np.linalg.norm(dq[..., :3], axis=-1, keepdims=True)
     angle = 2.0 * np.arctan2(sin_half, dq[..., 3:4])

@@ -17,7 +17,8 @@ from wc.devices import resolve_warp_device
 from wc.dynamics import ObjectState
 from wc.scene.scene import Scene
 from wc.sim.config import SimConfig
-from wc.sim.kinematic import interpolate_actions, pose_twists, quat_rotate
+from wc.rotations import quat_rotate
+from wc.sim.kinematic import interpolate_actions, pose_twists
 from wc.sim.rigid_fit import rigid_pose_from_vertices
 
 GRAVITY = (0.0, 0.0, -9.81)

@@ -4,18 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-
-def _quat_from_matrix(r: np.ndarray) -> np.ndarray:
-    """xyzw quaternion of a rotation matrix (3, 3)."""
-    w = np.sqrt(max(0.0, 1.0 + r[0, 0] + r[1, 1] + r[2, 2])) / 2.0
-    x = np.sqrt(max(0.0, 1.0 + r[0, 0] - r[1, 1] - r[2, 2])) / 2.0
-    y = np.sqrt(max(0.0, 1.0 - r[0, 0] + r[1, 1] - r[2, 2])) / 2.0
-    z = np.sqrt(max(0.0, 1.0 - r[0, 0] - r[1, 1] + r[2, 2])) / 2.0
-    x = np.copysign(x, r[2, 1] - r[1, 2])
-    y = np.copysign(y, r[0, 2] - r[2, 0])
-    z = np.copysign(z, r[1, 0] - r[0, 1])
-    q = np.array([x, y, z, w])
-    return q / np.linalg.norm(q)
+from wc.rotations import quat_from_matrix
 
 
 def rigid_pose_from_vertices(rest: np.ndarray, x: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -33,4 +22,4 @@ def rigid_pose_from_vertices(rest: np.ndarray, x: np.ndarray, v: np.ndarray) -> 
     skew[:, 1, 0], skew[:, 2, 0], skew[:, 2, 1] = -r[:, 2], r[:, 1], -r[:, 0]
     a = np.concatenate([np.tile(np.eye(3), (len(r), 1, 1)), skew], axis=2).reshape(-1, 6)
     twist = np.linalg.lstsq(a, v.reshape(-1), rcond=None)[0]
-    return np.concatenate([pos, _quat_from_matrix(rot)]).astype(np.float32), twist.astype(np.float32)
+    return np.concatenate([pos, quat_from_matrix(rot)]).astype(np.float32), twist.astype(np.float32)

@@ -55,7 +55,7 @@ def radial(scene: Scene, side: str, point: np.ndarray) -> np.ndarray:
 
 def home_separation(scene: Scene, side: str) -> np.ndarray:
     """The pad separation axis of an arm at home (pads are symmetric: prefer the sign needing least roll)."""
-    from wc.sim.kinematic import quat_rotate
+    from wc.rotations import quat_rotate
 
     return quat_rotate(arm_base(scene, side)[3:], np.array([0.0, 1.0, 0.0]))
 

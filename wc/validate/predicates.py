@@ -19,7 +19,7 @@ from wc.scene.cameras import camera_pose, intrinsics
 from wc.scene.mesh import ObjectMesh
 from wc.scene.piper import PAD_CENTRE_IN_FINGER_M, PAD_HALF_EXTENTS_M
 from wc.scene.scene import Scene
-from wc.sim.kinematic import quat_conjugate, quat_multiply, quat_rotate
+from wc.rotations import quat_conjugate, quat_matrices, quat_multiply, quat_rotate
 from wc.validate.config import ValidateConfig
 from wc.validate.self_intersection import crossing_edges, unique_edges
 
@@ -216,13 +216,6 @@ def rigid_frames(rest: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarra
     v[:, :, 2] *= flip[:, None]
     rot = v @ ut
     return xc - rot @ rc, rot
-
-
-def quat_matrices(quat: np.ndarray) -> np.ndarray:
-    """Rotation matrices (..., 3, 3) of xyzw quaternions (..., 4)."""
-    q = np.asarray(quat, np.float64)
-    cols = quat_rotate(q[..., None, :], np.eye(3))  # (..., 3 axes, 3): the rotated basis vectors
-    return np.swapaxes(cols, -1, -2)
 
 
 def rigid_poses(scene: Scene, ep: Episode) -> list[tuple[str, ObjectMesh, np.ndarray, np.ndarray]]:
