@@ -16,12 +16,15 @@ import torch
 from wc.baselines.baselines_stage import run
 from tests.conftest import load_params
 from wc.baselines import BASELINES, build_baseline, load_baseline, save_baseline
-from wc.baselines.config import BaselineParams
+from wc.baselines.config import BaselineParams, BaselinesConfig
+from wc.baselines.stopping import StopRule
+from wc.baselines.train import train_baseline
 from wc.baselines.losses import chamfer, emd
 from wc.baselines.sampling import particle_map
-from wc.config import ParamsError
+from wc.config import ParamsError, load_section
 from wc.data.store import TrajectoryStore
 from wc.model.layout import scene_layout
+from wc.train.config import TrainConfig
 from wc.train.data import episode_phases, read_phase_window
 
 EPISODES = [("fall", "train"), ("carry", "train"), ("fall", "train"), ("fall", "val"), ("carry", "val")]
@@ -184,3 +187,37 @@ def test_bad_params_are_named(params, store_path, tmp_path):
     with pytest.raises(ParamsError, match="models.adaptigraph"):
         run(bad, store_path, tmp_path / "m", tmp_path / "r.json")
     assert dataclasses.is_dataclass(BaselineParams)
+
+
+def test_stop_rule_converges_after_patience_and_restores_the_best_weights():
+    model = torch.nn.Linear(2, 1)
+    rule = StopRule(patience_evals=2)
+    rule.record(10, 1.0, model)
+    best = {k: v.clone() for k, v in model.state_dict().items()}
+    with torch.no_grad():
+        model.weight.add_(1.0)
+    rule.record(20, 1.5, model)
+    assert not rule.converged()
+    rule.record(30, 1.2, model)
+    assert rule.converged() and rule.best_step == 10 and rule.reason(30, 100) == "converged"
+    rule.restore_best(model)
+    assert all(torch.equal(model.state_dict()[k], v) for k, v in best.items())
+    assert not StopRule().converged() and not StopRule().out_of_time()
+    assert StopRule().reason(100, 100) == "steps" and StopRule().reason(40, 100) == "time"
+
+
+def test_time_budget_stops_training_after_the_step_that_passes_it(params, store_path, tmp_path):
+    cfg = load_section({**params, "baselines": {**copy.deepcopy(TINY), "max_minutes": 1e-9}}, "baselines",
+                       BaselinesConfig)
+    cfg = dataclasses.replace(cfg, models={**cfg.models, "robocook": dataclasses.replace(cfg.models["robocook"],
+                                                                                            steps=50)})
+    report = train_baseline("robocook", store_path, tmp_path / "robocook", cfg, load_section(params, "train", TrainConfig))
+    assert report["steps_done"] == 1 and report["stopped_by"] == "time"
+    assert [h["step"] for h in report["history"]] == [1] and report["best_step"] == 1
+    assert load_baseline(tmp_path / "robocook").name == "robocook"
+
+
+def test_budget_params_are_checked(params):
+    for key in ("max_minutes", "patience_evals"):
+        with pytest.raises(ParamsError, match=key):
+            load_section({**params, "baselines": {**copy.deepcopy(TINY), key: -1}}, "baselines", BaselinesConfig)

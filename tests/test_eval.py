@@ -23,6 +23,8 @@ from wc.eval import (ConstantVelocity, ErrorTally, EvaluateConfig, PenetrationTa
                      cloth_signed_distance, first_divergence, max_edge_strain, mesh_signed_distance,
                      penetrating_area_pct, squared_error)
 from wc.eval.cases import held_out_phases
+from wc.eval.config import MethodSpec
+from wc.eval.predictors import load_predictor
 from wc.model.config import ModelConfig
 from wc.model.layout import scene_layout
 from wc.model.rollout import rollout
@@ -279,4 +281,18 @@ def test_bad_evaluate_params_are_named(params):
     p = copy.deepcopy(params)
     p["evaluate"]["contact_band_m"] = 0.0
     with pytest.raises(ParamsError, match="contact_band_m"):
+        load_section(p, "evaluate", EvaluateConfig)
+
+
+def test_a_worldcontact_method_sets_its_own_precision(tmp_path, params):
+    save_weights(_tiny_model(params), tmp_path / "wc" / "model.safetensors", {"projection": False})
+    train_cfg = load_section(params, "train", TrainConfig)
+    for flag in (True, False):
+        spec = MethodSpec("worldcontact", str(tmp_path / "wc"), autocast_bf16=flag)
+        assert load_predictor(spec, train_cfg, torch.device("cpu")).train_cfg.autocast_bf16 is flag
+    unset = load_predictor(MethodSpec("worldcontact", str(tmp_path / "wc")), train_cfg, torch.device("cpu"))
+    assert unset.train_cfg.autocast_bf16 is train_cfg.autocast_bf16
+    p = copy.deepcopy(params)
+    p["evaluate"]["methods"] = {"cv": {"kind": "constant_velocity", "autocast_bf16": True}}
+    with pytest.raises(ParamsError, match="autocast_bf16"):
         load_section(p, "evaluate", EvaluateConfig)

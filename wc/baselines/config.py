@@ -52,6 +52,9 @@ class BaselinesConfig:
     rollout_phases: int = 8  # ... over this many validation phases (spread evenly over the list)
     device: str = "cpu"
     seed: int = 0
+    max_minutes: float = 0.0  # wall-time budget per baseline (0 = none): stops after the step that passes it
+    patience_evals: int = 0  # stop once the validation loss has not improved for this many evals (0 = never):
+    # "trained to convergence"; the weights of the best validation loss are the ones saved
 
     def validate(self) -> None:
         if not self.names:
@@ -62,3 +65,6 @@ class BaselinesConfig:
         for key in ("eval_every_steps", "val_windows", "rollout_frames", "rollout_phases"):
             if getattr(self, key) < 1:
                 raise ValueError(f"{key} must be >= 1, got {getattr(self, key)}")
+        if self.max_minutes < 0 or self.patience_evals < 0:
+            raise ValueError(f"max_minutes and patience_evals must be >= 0 (0 = off), got {self.max_minutes}, "
+                             f"{self.patience_evals}")

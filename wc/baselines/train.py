@@ -21,6 +21,7 @@ from tqdm import tqdm
 from wc.baselines import build_baseline, save_baseline
 from wc.baselines.base import ParticleDynamics
 from wc.baselines.config import BaselinesConfig
+from wc.baselines.stopping import StopRule
 from wc.data.store import TrajectoryStore
 from wc.model.layout import SceneLayout, scene_layout
 from wc.train.config import TrainConfig
@@ -82,6 +83,7 @@ def train_baseline(name: str, store_path: str | Path, out_dir: str | Path, cfg: 
     loader = iter(torch.utils.data.DataLoader(dataset, batch_sampler=LayoutBatchSampler(
         data.train_windows, params.batch, cfg.seed), num_workers=0))
     history, recent, step_times = [], [], []
+    stop = StopRule(cfg.max_minutes, cfg.patience_evals)
     for step in tqdm(range(1, params.steps + 1), desc=f"train {name}"):
         batch = next(loader)
         layout = layout_for(dataset.layout_keys[int(batch["layout"][0])])
@@ -94,7 +96,8 @@ def train_baseline(name: str, store_path: str | Path, out_dir: str | Path, cfg: 
         step_times.append(time.perf_counter() - t0)
         if not np.isfinite(recent[-1]):
             raise FloatingPointError(f"train {name}: loss became {recent[-1]} at step {step}")
-        if step % cfg.eval_every_steps == 0 or step == params.steps:
+        out_of_time = stop.out_of_time()
+        if step % cfg.eval_every_steps == 0 or step == params.steps or out_of_time:
             model.eval()
             val = validation_loss(model, store, data.val_windows, window, layout_for, device)
             model.train()
@@ -103,6 +106,10 @@ def train_baseline(name: str, store_path: str | Path, out_dir: str | Path, cfg: 
             history.append({"step": step, "train_loss": float(np.mean(recent)), "val_loss": val,
                             "lr": optimizer.param_groups[0]["lr"]})
             recent = []
+            stop.record(step, val, model)
+        if out_of_time or stop.converged():
+            break
+    stop.restore_best(model)
     model.eval()
     picked = data.val_phases[:: max(1, len(data.val_phases) // cfg.rollout_phases)][:cfg.rollout_phases]
     errors = rollout_error(model, store, picked, cfg.rollout_frames, layout_for, device)
@@ -115,8 +122,10 @@ def train_baseline(name: str, store_path: str | Path, out_dir: str | Path, cfg: 
               "val_windows": len(data.val_windows), "val_phases": len(data.val_phases), "rollout_phases": len(picked), "validation": data.validation,
               "particles_per_layout": {"+".join(k[0]): s.num_particles for k, s in
                                        ((k, model.scene(layout_for(k))) for k in dataset.layout_keys)},
-              "train_s": float(sum(step_times)), **errors}
-    save_baseline(model.cpu(), work, {**(meta or {}), "dt": store.dt, "steps": params.steps,
+              "train_s": float(sum(step_times)), "wall_s": stop.elapsed_s(), "steps_done": len(step_times),
+              "stopped_by": stop.reason(len(step_times), params.steps), "best_step": stop.best_step,
+              "best_val_loss": stop.best_val, **errors}
+    save_baseline(model.cpu(), work, {**(meta or {}), "dt": store.dt, "steps": len(step_times),
                                       "final_val_loss": report["final_val_loss"], **errors})
     if out_dir.exists():
         shutil.rmtree(out_dir)

@@ -17,6 +17,8 @@ warms it up, `rollout_case` is what the speed-accuracy chart times.
 
 from __future__ import annotations
 
+import dataclasses
+from contextlib import nullcontext
 from pathlib import Path
 from typing import Protocol, runtime_checkable
 
@@ -140,8 +142,10 @@ class WorldContactPredictor:
         xs = torch.full((x0.shape[0], steps, *x0.shape[1:]), float("nan"), dtype=x0.dtype, device=x0.device)
         vs = xs.clone()
         x, v = x0, v0
+        bf16 = self.train_cfg.autocast_bf16 and x0.device.type == "cuda"  # the network in bf16, the state in fp32
         for t in range(steps):
-            x, v = (a[:, 0] for a in rollout(self.model, layout, x, v, poses[:, t:t + 2], dt, projection))
+            with torch.autocast("cuda", dtype=torch.bfloat16) if bf16 else nullcontext():
+                x, v = (a[:, 0].float() for a in rollout(self.model, layout, x, v, poses[:, t:t + 2], dt, projection))
             xs[:, t], vs[:, t] = x, v
             if not (torch.isfinite(x).all() and torch.isfinite(v).all()):
                 break
@@ -165,6 +169,8 @@ def load_predictor(spec: MethodSpec, train_cfg: TrainConfig, device: torch.devic
     if not Path(spec.path).is_dir():
         raise FileNotFoundError(f"checkpoint directory {spec.path} not found")
     if spec.kind == "worldcontact":
+        if spec.autocast_bf16 is not None:
+            train_cfg = dataclasses.replace(train_cfg, autocast_bf16=spec.autocast_bf16)
         return WorldContactPredictor.from_dir(spec.path, train_cfg, device)
     from wc.baselines import load_baseline  # noqa: PLC0415 - written separately; optional until it lands
 
