@@ -15,7 +15,7 @@ python -m stages.simulate --params $P --set agent.seed=23 --set agent.episodes_p
 step "simulate rc=$? $(tail -c 300 $R/simulate_test.log | tr '\r\n' '  ')"
 python -m stages.validate --params $P --set validate.val_per_task=0 --set validate.test_per_task=2 \
   --raw $R/test_raw.zarr --out $R/test.zarr --report $R/validate_test.json > $R/validate_test.log 2>&1
-step "validate rc=$? $(tail -2 $R/validate_test.log | tr '\n' ' ')"
+step "validate rc=$? $(tr "\r" "\n" < $R/validate_test.log | tail -1)"
 python -m stages.evaluate --params $P --store $R/test.zarr --metrics $R/metrics.json --stability-csv $R/stability.csv \
   --stability-png $R/stability.png > $R/evaluate.log 2>&1
 step "evaluate rc=$? $(tail -16 $R/evaluate.log | tr '\r' '\n' | grep -v 'it/s' | tail -14)"

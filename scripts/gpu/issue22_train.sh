@@ -14,7 +14,7 @@ python -m stages.simulate --params $P --out $R/raw.zarr --report $R/simulate.jso
   > $R/simulate.log 2>&1
 step "simulate rc=$? overflow lines $(grep -c overflowed $R/simulate.log) $(tail -c 300 $R/simulate.log | tr '\r\n' '  ')"
 python -m stages.validate --params $P --raw $R/raw.zarr --out $R/store.zarr --report $R/validate.json > $R/validate.log 2>&1
-step "validate rc=$? $(tail -2 $R/validate.log | tr '\n' ' ')"
+step "validate rc=$? $(tr "\r" "\n" < $R/validate.log | tail -1)"
 train() {  # name, out, extra --set
   python -m stages.train --params $P "${@:3}" --store $R/store.zarr --out $2 --report $R/train_$1.json \
     --curves $R/train_loss_$1.csv > $R/train_$1.log 2>&1
