@@ -235,6 +235,9 @@ def test_evaluate_stage_end_to_end(tmp_path, store_path, params):
     assert set(r["methods"]) == {"worldcontact", "zero_motion", "constant_velocity"}
     assert "robocraft" in r["skipped"] and "not found" in r["skipped"]["robocraft"]
     assert r["held_out"]["source"] == "test split"
+    assert r["kinds"] == {"worldcontact": "worldcontact", "zero_motion": "zero_motion",
+                          "constant_velocity": "constant_velocity"}
+    assert r["dt"] == pytest.approx(TrajectoryStore(store_path).dt)
     assert r["held_out"]["rollouts"] == 3  # the fall, and the hand-off's two phases
     # zero motion, by hand: pooled over every vertex-frame of the three rollouts
     store = TrajectoryStore(store_path)

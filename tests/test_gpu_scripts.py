@@ -39,3 +39,21 @@ def test_issue19_overrides_are_valid_params(group):
     if group == "TRAIN_SETS":
         train = load_section(params, "train", TrainConfig)
         assert train.device == "cuda" and train.select_by == "rollout" and train.input_noise_m > 0
+
+
+def test_table1_params_are_valid_and_name_what_the_hold_script_unpacks():
+    from wc.baselines.config import BaselinesConfig  # noqa: PLC0415
+    from wc.eval.config import EvaluateConfig  # noqa: PLC0415
+
+    params = read_params(ROOT / "params" / "gpu_table1.yaml")
+    for section, cls in [("sim", SimConfig), ("agent", AgentConfig), ("validate", ValidateConfig),
+                         ("train", TrainConfig), ("baselines", BaselinesConfig), ("evaluate", EvaluateConfig)]:
+        load_section(params, section, cls)
+    hold = (ROOT / "scripts" / "gpu" / "issue22_hold.sh").read_text()
+    methods = params["evaluate"]["methods"]
+    for name in params["ablations"]:  # every ablation trained is evaluated where `eval` puts it
+        assert methods[name]["path"] == f"models/table1/ablations/{name}" and "no_*) dir=models/table1/ablations" in hold
+    for name in params["baselines"]["names"]:
+        assert methods[name]["path"] == f"models/table1/baselines/{name}"
+    assert methods["worldcontact_budget"]["path"] == "models/table1/worldcontact"
+    assert params["train"]["max_minutes"] == params["baselines"]["max_minutes"]  # one budget for every learned method

@@ -112,8 +112,11 @@ class TopologyProjection(nn.Module):
         """Eq. projection_finetune: X_hat_{t+dt} (B, N, 3) [m] from X_hat_t = x_prev and the network's X_tilde = x_pred.
 
         Computed (and returned) in at least float32, also under autocast. Without gradients on CUDA (and
-        cuda_graph set) it replays a captured CUDA graph of the same computation.
+        cuda_graph set) it replays a captured CUDA graph of the same computation, except while a caller captures
+        its own graph (a whole static rollout step): a graph cannot be replayed during a capture, so the projection's
+        kernels are captured into the caller's.
         """
-        if self.cuda_graph and x_pred.is_cuda and not torch.is_grad_enabled():
+        capturing = x_pred.is_cuda and torch.cuda.is_current_stream_capturing()  # inside a caller's graph: no replay
+        if self.cuda_graph and x_pred.is_cuda and not torch.is_grad_enabled() and not capturing:
             return self._graphed(x_prev, x_pred)
         return self.project(x_prev, x_pred)
