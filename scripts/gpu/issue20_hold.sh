@@ -8,33 +8,19 @@
 #   issue20_hold.sh policies    the carried dataset pieces (/tmp/gpu_data) unpacked to /tmp/run/lerobot, then
 #                               issue20_policies.sh in the background; waits like `wait`
 cd "$(dirname "$0")/../.."
-export PYTHONPATH=/tmp/site:$PWD
-R=/tmp/run; mkdir -p $R "$OUT"
-wait_bg() {
-  end=$((SECONDS + ${1:-500}))
-  while kill -0 "$(cat $R/bg.pid)" 2>/dev/null && [ $SECONDS -lt $end ]; do sleep 5; done
-  cat $R/steps.log; tail -c 600 $R/bg.log
-  for f in $R/*.json $R/sheet_*.png $R/policy_success.*; do [ -f "$f" ] && cp "$f" "$OUT"/; done
-  ls "$OUT" | head -20
-}
+source scripts/gpu/hold_lib.sh
 case "$1" in
-  unpack)
-    cat /tmp/gpu/part-* | xz -dc -T0 | tar x -C / || exit 1
-    mkdir -p ~/.cache/warp && xz -dc scripts/gpu/kernel_cache/warp-1.19.0_newton-1.8.0_sm90.tar.xz | tar x -C ~/.cache/warp --skip-old-files
-    python -c "import warp, newton, zarr, lerobot, av, datasets, draccus; from lerobot.policies.act.modeling_act import ACTPolicy; print('imports ok', warp.__version__, newton.__version__, lerobot.__version__)"
-    nvidia-smi --query-gpu=name,memory.used --format=csv ;;
+  unpack) unpack_wheels "import warp, newton, zarr, lerobot, av, datasets, draccus; from lerobot.policies.act.modeling_act import ACTPolicy; print('imports ok', warp.__version__, newton.__version__, lerobot.__version__)" ;;
   data)
-    setsid nohup bash scripts/gpu/issue20_data.sh > $R/bg.log 2>&1 < /dev/null &
-    echo $! > $R/bg.pid
-    wait_bg ${2:-540} ;;
+    background scripts/gpu/issue20_data.sh
+    wait_bg ${2:-540} $R/*.json $R/sheet_*.png $R/policy_success.* ;;
   policies)
     cat /tmp/gpu_data/lerobot.tar.* | tar x -C $R || exit 1
     du -sh $R/lerobot/*
     rm -f $R/steps.log
-    setsid nohup bash scripts/gpu/issue20_policies.sh > $R/bg.log 2>&1 < /dev/null &
-    echo $! > $R/bg.pid
-    wait_bg ${2:-540} ;;
-  wait) wait_bg ${2:-540} ;;
+    background scripts/gpu/issue20_policies.sh
+    wait_bg ${2:-540} $R/*.json $R/sheet_*.png $R/policy_success.* ;;
+  wait) wait_bg ${2:-540} $R/*.json $R/sheet_*.png $R/policy_success.* ;;
   pack)
     tar cf - -C $R lerobot | split -b 15000000 -d - "$OUT"/lerobot.tar.
     ls -la "$OUT" ;;

@@ -9,23 +9,10 @@
 #                               issue22_eval.sh in the background (fresh test episodes, evaluate, speed); waits
 #   issue22_hold.sh wait S      wait up to S seconds for the background job; progress; reports to $OUT
 cd "$(dirname "$0")/../.."
-export PYTHONPATH=/tmp/site:$PWD
-R=/tmp/run; mkdir -p $R "$OUT"
-wait_bg() {
-  end=$((SECONDS + ${1:-500}))
-  while kill -0 "$(cat $R/bg.pid)" 2>/dev/null && [ $SECONDS -lt $end ]; do sleep 5; done
-  cat $R/steps.log; tail -c 800 $R/bg.log
-  for f in $R/*.json $R/*.csv $R/*.png $R/*.md; do [ -f "$f" ] && cp "$f" "$OUT"/; done
-  ls "$OUT" | head -30
-}
-background() { setsid nohup bash "$1" > $R/bg.log 2>&1 < /dev/null & echo $! > $R/bg.pid; }
+source scripts/gpu/hold_lib.sh
 case "$1" in
-  unpack)
-    cat /tmp/gpu/part-* | xz -dc -T0 | tar x -C / || exit 1
-    mkdir -p ~/.cache/warp && xz -dc scripts/gpu/kernel_cache/warp-1.19.0_newton-1.8.0_sm90.tar.xz | tar x -C ~/.cache/warp --skip-old-files
-    python -c "import warp, newton, zarr, trimesh; print('imports ok', warp.__version__, newton.__version__, zarr.__version__)"
-    nvidia-smi --query-gpu=name,memory.used --format=csv ;;
-  train) background scripts/gpu/issue22_train.sh; wait_bg ${2:-540} ;;
+  unpack) unpack_wheels "import warp, newton, zarr, trimesh; print('imports ok', warp.__version__, newton.__version__, zarr.__version__)" ;;
+  train) background scripts/gpu/issue22_train.sh; wait_bg ${2:-540} $R/*.json $R/*.csv $R/*.png $R/*.md ;;
   models)
     for d in $R/models/*/ $R/models/ablations/*/ $R/models/baselines/*/; do
       [ -f "$d/model.safetensors" ] && tar cf "$OUT/model_$(basename $d).tar" -C "$d" . ; done
@@ -38,7 +25,7 @@ case "$1" in
         no_*) dir=models/table1/ablations/$name ;; *) dir=models/table1/baselines/$name ;; esac
       mkdir -p $dir && tar xf $t -C $dir && echo "$dir: $(ls $dir | tr '\n' ' ')"
     done
-    rm -f $R/steps.log; background scripts/gpu/issue22_eval.sh; wait_bg ${2:-500} ;;
-  wait) wait_bg ${2:-540} ;;
+    rm -f $R/steps.log; background scripts/gpu/issue22_eval.sh; wait_bg ${2:-500} $R/*.json $R/*.csv $R/*.png $R/*.md ;;
+  wait) wait_bg ${2:-540} $R/*.json $R/*.csv $R/*.png $R/*.md ;;
   *) echo "usage: $0 unpack | train [S] | models | eval [S] | wait S" >&2; exit 2 ;;
 esac
