@@ -1,5 +1,5 @@
 """Baselines (RoboCraft, RoboCook, AdaptiGraph): shapes, one step lowers the loss, the exact map back to
-vertices, set losses, save/load, and the stage on a synthetic store."""
+vertices, set losses, save/load, the pruned PropNet against the dense one, and the stage on a synthetic store."""
 
 from __future__ import annotations
 
@@ -15,15 +15,16 @@ import torch
 
 from wc.baselines.baselines_stage import run
 from tests.conftest import load_params
-from wc.baselines import BASELINES, build_baseline, load_baseline, save_baseline
+from wc.baselines import BASELINES, base, build_baseline, load_baseline, save_baseline
 from wc.baselines.config import BaselineParams, BaselinesConfig
 from wc.baselines.stopping import StopRule
 from wc.baselines.train import train_baseline
 from wc.baselines.losses import chamfer, emd
+from wc.baselines.propnet import PropNet
 from wc.baselines.sampling import particle_map
 from wc.config import ParamsError, load_section
 from wc.data.store import TrajectoryStore
-from wc.model.layout import scene_layout
+from wc.model.layout import SceneLayout, boundary_samples, scene_layout
 from wc.train.config import TrainConfig
 from wc.train.data import episode_phases, read_phase_window
 
@@ -66,6 +67,75 @@ def _model(name: str, **overrides: Any):
     model = build_baseline(name, params)
     model.set_statistics(torch.tensor([0.0, 0.0, 0.05]), torch.tensor([0.05, 0.03, 0.04]), 0.004)
     return model
+
+
+def _dense_effects(net: PropNet, nodes: torch.Tensor, relations: torch.Tensor, receivers: torch.Tensor,
+                   senders: torch.Tensor) -> torch.Tensor:
+    """Reference: PropNet effects of every node, propagated over every node as in the originals."""
+    particle_enc = net.particle_encoder(nodes)
+    relation_enc = net.relation_encoder(relations)
+    effect = torch.zeros_like(particle_enc)
+    for _ in range(net.pstep):
+        rel = torch.relu(net.relation_propagator(torch.cat([relation_enc, effect[receivers], effect[senders]], -1)))
+        agg = torch.zeros_like(effect).index_add_(0, receivers, rel)
+        effect = torch.relu(net.particle_propagator(torch.cat([particle_enc, agg], -1)) + effect)
+    return effect
+
+
+def _all_sample_frames(layout: SceneLayout, poses: torch.Tensor, rows: torch.Tensor):
+    """Reference: every prescribed sample posed by boundary_samples, then the rows taken."""
+    b, t = poses.shape[:2]
+    flat = poses.reshape(b * t, *poses.shape[2:])
+    controllable, environment = boundary_samples(layout, flat, flat, 1.0)
+    x = torch.cat([controllable.x, environment.x], 1).reshape(b, t, -1, 3)
+    n = torch.cat([controllable.attributes[..., 1:], environment.attributes[..., 1:]], 1).reshape(b, t, -1, 3)
+    return x[:, :, rows], n[:, :, rows]
+
+
+def test_propnet_matches_the_dense_reference_and_ignores_nodes_that_send_nothing():
+    torch.manual_seed(0)
+    net = PropNet(4, 5, pstep=3, width=8).double()
+    nodes = torch.randn(7, 4, dtype=torch.float64)
+    # chain 3 -> 2 -> 1 -> 0, 4 -> 0; node 5 only receives, node 6 has no relation
+    receivers, senders = torch.tensor([2, 1, 0, 0, 5]), torch.tensor([3, 2, 1, 4, 0])
+    relations = torch.randn(5, 5, dtype=torch.float64)
+    dense = _dense_effects(net, nodes, relations, receivers, senders)
+    tight = {"rtol": 1e-12, "atol": 1e-12}
+    torch.testing.assert_close(net.effects(nodes, relations, receivers, senders, torch.arange(7)), dense, **tight)
+    out = torch.tensor([0, 2])
+    assert dense[out].abs().sum() > 0
+    pred = net(nodes, relations, receivers, senders, out)
+    torch.testing.assert_close(pred, net.predictor(dense[out]), **tight)
+    # a new node 7 that sends nothing (it receives from node 0) leaves every other node as it was
+    more = (torch.cat([nodes, torch.randn(1, 4, dtype=torch.float64)]), torch.cat([relations, torch.randn(1, 5).double()]),
+            torch.cat([receivers, torch.tensor([7])]), torch.cat([senders, torch.tensor([0])]))
+    torch.testing.assert_close(net(*more, out), pred, **tight)
+    torch.testing.assert_close(_dense_effects(net, *more)[:7], dense, **tight)
+
+
+@pytest.mark.parametrize("name", list(BASELINES))
+def test_predictions_loss_and_grads_match_the_dense_reference(store_path, name, monkeypatch):
+    """The pruned, split PropNet and the posing of used samples only change nothing but float rounding."""
+    model = _model(name, **({} if name == "adaptigraph" else WIDE)).eval()
+    layout, a = _window(store_path, "ep_000000", model.history + model.sequence)
+
+    def run():
+        model.zero_grad()
+        x, _ = model.rollout(layout, a["x"][:, 0], a["v"][:, 0], a["poses"], 0.04)
+        loss = model.window_loss(layout, a["x"], a["poses"])
+        loss.backward()
+        return x - a["x"][:, :1], loss.detach(), [p.grad.clone() for p in model.parameters()]
+
+    got = run()
+    monkeypatch.setattr(model.net, "effects", lambda nodes, rel, rr, ss, outputs:
+                        _dense_effects(model.net, nodes, rel, rr, ss)[outputs])
+    monkeypatch.setattr(base, "sample_frames", _all_sample_frames)
+    want = run()
+    assert want[0].abs().max() > 1e-4  # the particles do move
+    torch.testing.assert_close(got[0], want[0], rtol=1e-5, atol=1e-8)
+    torch.testing.assert_close(got[1], want[1], rtol=1e-6, atol=0.0)
+    for g, w in zip(got[2], want[2]):
+        torch.testing.assert_close(g, w, rtol=1e-4, atol=1e-5 * float(w.abs().max()))
 
 
 @pytest.mark.parametrize("name", list(BASELINES))

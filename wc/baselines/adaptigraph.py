@@ -16,7 +16,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from wc.baselines.base import Graph, ParticleDynamics, StepInput, nearest_per_group, radius_edges
+from wc.baselines.base import Graph, ParticleDynamics, StepInput, nearest_per_group, particle_rows, radius_edges
 from wc.baselines.config import BaselineParams
 from wc.baselines.propnet import PropNet
 
@@ -52,7 +52,8 @@ class AdaptiGraph(ParticleDynamics):
         hist = torch.cat([step.objects, eef[:, :-1]], 2).permute(0, 2, 1, 3).flatten(0, 1)  # (B n, H, 3)
         offsets = ((hist[rr] - hist[ss]) / self.position_std).flatten(1)
         relations = torch.cat([attr[rr], attr[ss], (group[rr] != group[ss]).float()[:, None], offsets], -1)
-        move = self.net(nodes, relations, rr, ss).view(bsz, n, 3)[:, :k] * self.displacement_std
+        out = self.net(nodes, relations, rr, ss, particle_rows(bsz, n, k, p.device))
+        move = out.view(bsz, k, 3) * self.displacement_std
         return p + move, graph
 
     def _graph(self, p: torch.Tensor, eef_body: torch.Tensor, me: int) -> Graph:

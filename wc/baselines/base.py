@@ -18,8 +18,9 @@ from torch import nn
 
 from wc.baselines.config import BaselineParams
 from wc.baselines.sampling import ParticleMap, farthest_points, particle_map
-from wc.model.layout import SceneLayout, boundary_samples
+from wc.model.layout import SceneLayout
 from wc.model.neighbors import radius_pairs
+from wc.rotations import quat_rotate_torch
 
 
 @dataclass
@@ -80,14 +81,17 @@ def particle_scene(layout: SceneLayout, particles: int, tool_points_per_body: in
     return scene
 
 
-def sample_frames(layout: SceneLayout, poses: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Positions and normals (B, T, M, 3) of every prescribed sample at every frame of poses (B, T, P, 7)."""
-    b, t = poses.shape[:2]
-    flat = poses.reshape(b * t, *poses.shape[2:])
-    controllable, environment = boundary_samples(layout, flat, flat, 1.0)
-    x = torch.cat([controllable.x, environment.x], 1)
-    n = torch.cat([controllable.attributes[..., 1:], environment.attributes[..., 1:]], 1)
-    return x.reshape(b, t, -1, 3), n.reshape(b, t, -1, 3)
+def sample_frames(layout: SceneLayout, poses: torch.Tensor, rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Positions and normals (B, T, R, 3) of the prescribed samples `rows` (R,) at every frame of poses (B, T, P, 7)."""
+    at = poses[:, :, layout.sample_body[rows]]  # (B, T, R, 7)
+    local = layout.sample_points[rows].expand_as(at[..., :3])
+    x = at[..., :3] + quat_rotate_torch(at[..., 3:], local)
+    return x, quat_rotate_torch(at[..., 3:], layout.sample_normals[rows].expand_as(local))
+
+
+def particle_rows(bsz: int, n: int, k: int, device: torch.device) -> torch.Tensor:
+    """Flat node indices (B k,) of the particles: the first k of each scene's n nodes."""
+    return (torch.arange(bsz, device=device)[:, None] * n + torch.arange(k, device=device)).flatten()
 
 
 def radius_edges(receivers: torch.Tensor, senders: torch.Tensor, radius: float,
@@ -188,9 +192,10 @@ class ParticleDynamics(nn.Module):
             raise ValueError(f"{self.name}: need particle history (B, {h}, K, 3) and poses (B, >= {h + 1}, P, 7), "
                              f"got {tuple(objects.shape)} and {tuple(poses.shape)}")
         sc = self.scene(layout)
-        points, normals = sample_frames(layout, poses)
-        tools, tool_normals = points[:, :, sc.tool_samples], normals[:, :, sc.tool_samples]
-        env, env_normals = points[:, :, sc.env_samples], normals[:, :, sc.env_samples]
+        mt = sc.tool_samples.shape[0]
+        points, normals = sample_frames(layout, poses, torch.cat([sc.tool_samples, sc.env_samples]))
+        tools, tool_normals = points[:, :, :mt], normals[:, :, :mt]
+        env, env_normals = points[:, :, mt:], normals[:, :, mt:]
         hist, graph, out = objects, None, []
         for s in range(poses.shape[1] - h):
             step = StepInput(hist, tools[:, s:s + h + 1], tool_normals[:, s + h], env[:, s + h], env_normals[:, s + h], sc)

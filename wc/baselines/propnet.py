@@ -9,6 +9,7 @@ one graph with disjoint node ranges.
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 WIDTH = 150  # nf in all three originals
@@ -25,7 +26,7 @@ def mlp(sizes: list[int], relu_out: bool) -> nn.Sequential:
 
 
 class PropNet(nn.Module):
-    """Particle effects after `pstep` propagation steps, and the per-particle output of the predictor."""
+    """Node effects after `pstep` propagation steps, and the per-node output of the predictor."""
 
     def __init__(self, node_dim: int, relation_dim: int, pstep: int, out_dim: int = 3, width: int = WIDTH) -> None:
         super().__init__()
@@ -38,21 +39,41 @@ class PropNet(nn.Module):
         self.predictor = mlp([width, width, width, out_dim], relu_out=False)
 
     def effects(self, nodes: torch.Tensor, relations: torch.Tensor, receivers: torch.Tensor,
-                senders: torch.Tensor) -> torch.Tensor:
-        """Particle effects (n, width) from node inputs (n, node_dim), relation inputs (E, relation_dim), (E,) indices."""
+                senders: torch.Tensor, outputs: torch.Tensor) -> torch.Tensor:
+        """Effects (len(outputs), width) of the nodes `outputs`, from node inputs (n, node_dim), relation inputs
+        (E, relation_dim) and (E,) indices.
+
+        Only the outputs and the ends of relations are propagated: a node that sends no relation cannot
+        influence another. The relation propagator's linear map on [relation, effect[r], effect[s]] is split
+        into its relation part (computed once) and per-node receiver and sender terms gathered onto edges.
+        """
         if relations.shape[0] != receivers.shape[0] or receivers.shape != senders.shape:
             raise ValueError(f"relations {tuple(relations.shape)}, receivers {tuple(receivers.shape)} and senders "
                              f"{tuple(senders.shape)} disagree")
-        particle_enc = self.particle_encoder(nodes)
-        relation_enc = self.relation_encoder(relations)
+        keep = torch.zeros(nodes.shape[0], dtype=torch.bool, device=nodes.device)
+        keep[outputs] = True
+        keep[receivers] = True
+        keep[senders] = True
+        keep = torch.nonzero(keep).squeeze(1)
+        remap = torch.empty(nodes.shape[0], dtype=torch.long, device=nodes.device)
+        remap[keep] = torch.arange(keep.numel(), device=nodes.device)
+        rr, ss = remap[receivers], remap[senders]
+        particle_enc = self.particle_encoder(nodes[keep])
+        w = self.width
+        weight = self.relation_propagator.weight
+        to_receiver, to_sender = weight[:, w:2 * w], weight[:, 2 * w:]
+        rel_term = F.linear(self.relation_encoder(relations), weight[:, :w], self.relation_propagator.bias)
         effect = torch.zeros_like(particle_enc)
-        for _ in range(self.pstep):
-            rel = torch.relu(self.relation_propagator(torch.cat([relation_enc, effect[receivers], effect[senders]], -1)))
-            agg = torch.zeros_like(effect).index_add_(0, receivers, rel)
+        for i in range(self.pstep):
+            if i == 0:  # every effect is still zero
+                rel = torch.relu(rel_term)
+            else:
+                rel = torch.relu(rel_term + F.linear(effect, to_receiver)[rr] + F.linear(effect, to_sender)[ss])
+            agg = torch.zeros_like(effect).index_add_(0, rr, rel)
             effect = torch.relu(self.particle_propagator(torch.cat([particle_enc, agg], -1)) + effect)
-        return effect
+        return effect[remap[outputs]]
 
     def forward(self, nodes: torch.Tensor, relations: torch.Tensor, receivers: torch.Tensor,
-                senders: torch.Tensor) -> torch.Tensor:
-        """Predictor output (n, out_dim) for every node."""
-        return self.predictor(self.effects(nodes, relations, receivers, senders))
+                senders: torch.Tensor, outputs: torch.Tensor) -> torch.Tensor:
+        """Predictor output (len(outputs), out_dim) of the nodes `outputs`."""
+        return self.predictor(self.effects(nodes, relations, receivers, senders, outputs))

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import torch
 
-from wc.baselines.base import Graph, ParticleDynamics, StepInput, node_types, radius_graph
+from wc.baselines.base import Graph, ParticleDynamics, StepInput, node_types, particle_rows, radius_graph
 from wc.baselines.config import BaselineParams
 from wc.baselines.losses import chamfer, emd
 from wc.baselines.propnet import PropNet
@@ -51,8 +51,9 @@ class RoboCook(ParticleDynamics):
             graph = radius_graph(step, self.params.neighbor_radius_m, self.params.tool_radius_m,
                                  self.params.neighbor_radius_m, MAX_PARTICLES_PER_TOOL_POINT)
         rr, ss = graph.receivers, graph.senders
-        out = self.net(torch.cat([attr, state], -1), torch.cat([attr[rr], attr[ss], state[rr] - state[ss]], -1), rr, ss)
-        move = out.view(bsz, k + mt + me, 3)[:, :k] * self.displacement_std
+        out = self.net(torch.cat([attr, state], -1), torch.cat([attr[rr], attr[ss], state[rr] - state[ss]], -1), rr, ss,
+                       particle_rows(bsz, k + mt + me, k, p.device))
+        move = out.view(bsz, k, 3) * self.displacement_std
         touched = torch.bincount(graph.tool_batch, minlength=bsz) > 0
         move = torch.where(touched.view(bsz, 1, 1), move, torch.zeros_like(move))
         if self.params.max_step_m > 0:

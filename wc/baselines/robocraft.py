@@ -15,7 +15,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from wc.baselines.base import Graph, ParticleDynamics, StepInput, node_types, radius_graph
+from wc.baselines.base import Graph, ParticleDynamics, StepInput, node_types, particle_rows, radius_graph
 from wc.baselines.config import BaselineParams
 from wc.baselines.losses import chamfer, emd
 from wc.baselines.propnet import WIDTH, PropNet, mlp
@@ -51,7 +51,7 @@ class RoboCraft(ParticleDynamics):
             graph = radius_graph(step, r, r + self.params.tool_radius_m, r + self.params.tool_radius_m)
         rr, ss = graph.receivers, graph.senders
         effect = self.net.effects(torch.cat([attr, state], -1), torch.cat([attr[rr], attr[ss], state[rr] - state[ss]], -1),
-                                  rr, ss).view(bsz, k + mt + me, -1)[:, :k]
+                                  rr, ss, particle_rows(bsz, k + mt + me, k, p.device)).view(bsz, k, -1)
         nonrigid = self.net.predictor(effect) * scale
         rigid = self._rigid_motion(effect, p, step.scene.particles.object_id) - p
         mode = self._contact_mode(graph, bsz).view(bsz, 1, 1)
