@@ -145,7 +145,7 @@ class WorldContactPredictor:
         bf16 = self.train_cfg.autocast_bf16 and x0.device.type == "cuda"  # the network in bf16, the state in fp32
         for t in range(steps):
             with torch.autocast("cuda", dtype=torch.bfloat16) if bf16 else nullcontext():
-                x, v = (a[:, 0].float() for a in rollout(self.model, layout, x, v, poses[:, t:t + 2], dt, projection))
+                x, v = (a[:, 0].to(x0.dtype) for a in rollout(self.model, layout, x, v, poses[:, t:t + 2], dt, projection))
             xs[:, t], vs[:, t] = x, v
             if not (torch.isfinite(x).all() and torch.isfinite(v).all()):
                 break
