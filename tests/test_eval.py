@@ -290,12 +290,13 @@ def test_bad_evaluate_params_are_named(params):
 def test_a_worldcontact_method_sets_its_own_precision(tmp_path, params):
     save_weights(_tiny_model(params), tmp_path / "wc" / "model.safetensors", {"projection": False})
     train_cfg = load_section(params, "train", TrainConfig)
-    for flag in (True, False):
-        spec = MethodSpec("worldcontact", str(tmp_path / "wc"), autocast_bf16=flag)
-        assert load_predictor(spec, train_cfg, torch.device("cpu")).train_cfg.autocast_bf16 is flag
-    unset = load_predictor(MethodSpec("worldcontact", str(tmp_path / "wc")), train_cfg, torch.device("cpu"))
-    assert unset.train_cfg.autocast_bf16 is train_cfg.autocast_bf16
-    p = copy.deepcopy(params)
-    p["evaluate"]["methods"] = {"cv": {"kind": "constant_velocity", "autocast_bf16": True}}
-    with pytest.raises(ParamsError, match="autocast_bf16"):
-        load_section(p, "evaluate", EvaluateConfig)
+    for key in ("autocast_bf16", "cuda_graph"):
+        for flag in (True, False):
+            spec = MethodSpec("worldcontact", str(tmp_path / "wc"), **{key: flag})
+            assert getattr(load_predictor(spec, train_cfg, torch.device("cpu")).train_cfg, key) is flag
+        unset = load_predictor(MethodSpec("worldcontact", str(tmp_path / "wc")), train_cfg, torch.device("cpu"))
+        assert getattr(unset.train_cfg, key) is getattr(train_cfg, key)
+        p = copy.deepcopy(params)
+        p["evaluate"]["methods"] = {"cv": {"kind": "constant_velocity", key: True}}
+        with pytest.raises(ParamsError, match=key):
+            load_section(p, "evaluate", EvaluateConfig)

@@ -20,7 +20,8 @@ from wc.dynamics import ObjectState
 from wc.eval.cases import CaseReader
 from wc.eval.config import EvaluateConfig, MethodSpec
 from wc.eval.newton_predictor import NewtonPredictor, coarse_scene_config
-from wc.eval.stage import case_actions, evaluate
+from wc.eval.predictors import ZeroMotion
+from wc.eval.stage import case_actions, evaluate, held_out_scores
 from wc.scene.config import SceneConfig
 from wc.scene.resample import ResolutionMap, surface_map
 from wc.scene.scene import build_scene
@@ -193,3 +194,29 @@ def test_stage_puts_newton_settings_on_the_chart_only(tmp_path, store_path, para
         assert float(row["simulated_s_per_wall_s"]) == pytest.approx(0.04 / chart["methods"][name]["s_per_step"])
     assert {row["method"] for row in csv.DictReader((out / "stability.csv").open())} == {"ground_truth", "zero_motion"}
     assert (out / "speed_accuracy.png").stat().st_size > 10_000
+
+
+class CountingZeroMotion(ZeroMotion):
+    """Zero motion that counts its rollouts."""
+
+    def __init__(self) -> None:
+        self.rollouts = 0
+
+    def rollout(self, *args):  # noqa: ANN002, ANN201 - ZeroMotion.rollout's signature
+        self.rollouts += 1
+        return super().rollout(*args)
+
+
+def test_every_method_rolls_the_first_chart_case_once_untimed(store_path, configs):
+    """A learned method's first rollout compiles / captures its CUDA graph: the chart must not time it."""
+    scene_cfg, _ = configs
+    store = TrajectoryStore(store_path)
+    phase = episode_phases(store, "ep_000000")[0]
+    phases = [Phase(phase.episode, start, phase.stop, phase.layout) for start in (0, 2)]
+    cfg = EvaluateConfig(rollout_frames=3, stability_frames=3, methods={"z": MethodSpec("zero_motion")},
+                         chart_max_cases=1)
+    counting = CountingZeroMotion()
+    out = held_out_scores(CaseReader(store, scene_cfg, 0.02, CPU), phases, {"z": counting}, cfg, store.dt)
+    assert len(out.rolled) == 2 and len(out.charted) == 1
+    assert counting.rollouts == 3  # the charted rollout twice (warm-up + timed), the other once
+    assert out.chart["z"].steps == out.charted[0]["steps"]  # the warm-up is neither timed nor scored

@@ -5,9 +5,10 @@
 #   2. every learned method on its train split, side by side on the one GPU, under one wall-clock budget: WorldContact
 #      from scratch and both ablations (train stage, the same recipe and steps), RoboCraft, RoboCook and AdaptiGraph
 #      (train_baselines, until the budget or the convergence of their validation loss)
+# ONLY=baselines trains the three baselines alone, without the WorldContact trainings beside them; P names the params.
 cd "$(dirname "$0")/../.."
 export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1
-R=/tmp/run; P=params/gpu_table1.yaml; mkdir -p $R/models/ablations $R/models/baselines
+R=/tmp/run; P=${P:-params/gpu_table1.yaml}; mkdir -p $R/models/ablations $R/models/baselines
 step() { echo "$(date +%T) $*" >> $R/steps.log; }
 step "simulate start"
 python -m stages.simulate --params $P --out $R/raw.zarr --report $R/simulate.json --memory $R/memory.json \
@@ -20,9 +21,11 @@ train() {  # name, out, extra --set
     --curves $R/train_loss_$1.csv > $R/train_$1.log 2>&1
   step "train $1 rc=$? $(tail -c 300 $R/train_$1.log | tr '\r\n' '  ')"
 }
-train worldcontact $R/models/worldcontact &
-train no_contact_tokenizer $R/models/ablations/no_contact_tokenizer --set model.tokenizer=linear &
-train no_hierarchical_compression $R/models/ablations/no_hierarchical_compression --set model.compress=false &
+if [ "${ONLY:-}" != baselines ]; then
+  train worldcontact $R/models/worldcontact &
+  train no_contact_tokenizer $R/models/ablations/no_contact_tokenizer --set model.tokenizer=linear &
+  train no_hierarchical_compression $R/models/ablations/no_hierarchical_compression --set model.compress=false &
+fi
 for b in robocraft robocook adaptigraph; do
   ( python -m stages.train_baselines --params $P --set "baselines.names=[$b]" --store $R/store.zarr \
       --out $R/models/baselines --report $R/train_baseline_$b.json > $R/train_baseline_$b.log 2>&1

@@ -10,6 +10,7 @@ from wc.devices import check_device_name
 MethodKind = Literal["worldcontact", "baseline", "zero_motion", "constant_velocity", "newton"]
 CHECKPOINT_KINDS = ("worldcontact", "baseline")
 NEWTON_KEYS = ("iterations", "substeps", "cloth_vertices_scale")  # settings only kind newton takes
+WORLDCONTACT_KEYS = ("autocast_bf16", "cuda_graph")  # settings only kind worldcontact takes
 
 
 @dataclass(frozen=True)
@@ -24,14 +25,16 @@ class MethodSpec:
     substeps: int | None = None  # newton: solver steps per frame; the solver dt becomes frame dt / substeps
     cloth_vertices_scale: float | None = None  # newton: every cloth mesh built at this x its target_vertices
     autocast_bf16: bool | None = None  # worldcontact: roll out under bf16 autocast (CUDA) or not; unset: params train
+    cuda_graph: bool | None = None  # worldcontact: replay each static rollout step as a CUDA graph; unset: params train
 
     def validate(self) -> None:
         if self.kind in CHECKPOINT_KINDS and not self.path:
             raise ValueError(f"kind {self.kind!r} needs a path (its checkpoint directory)")
         if self.kind not in CHECKPOINT_KINDS and self.path:
             raise ValueError(f"kind {self.kind!r} takes no path, got {self.path!r}")
-        if self.autocast_bf16 is not None and self.kind != "worldcontact":
-            raise ValueError(f"autocast_bf16 is a setting of kind 'worldcontact' only, not of kind {self.kind!r}")
+        for key in WORLDCONTACT_KEYS:
+            if getattr(self, key) is not None and self.kind != "worldcontact":
+                raise ValueError(f"{key} is a setting of kind 'worldcontact' only, not of kind {self.kind!r}")
         for key in NEWTON_KEYS:
             value = getattr(self, key)
             if value is None:

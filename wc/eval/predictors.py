@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from wc.eval.cases import Case
-from wc.eval.config import MethodSpec
+from wc.eval.config import WORLDCONTACT_KEYS, MethodSpec
 from wc.eval.newton_predictor import NewtonPredictor
 from wc.model.layout import SceneLayout
 from wc.model.fixed_neighbors import capacities_from_dict
@@ -169,8 +169,8 @@ def load_predictor(spec: MethodSpec, train_cfg: TrainConfig, device: torch.devic
     if not Path(spec.path).is_dir():
         raise FileNotFoundError(f"checkpoint directory {spec.path} not found")
     if spec.kind == "worldcontact":
-        if spec.autocast_bf16 is not None:
-            train_cfg = dataclasses.replace(train_cfg, autocast_bf16=spec.autocast_bf16)
+        overrides = {key: getattr(spec, key) for key in WORLDCONTACT_KEYS if getattr(spec, key) is not None}
+        train_cfg = dataclasses.replace(train_cfg, **overrides)
         return WorldContactPredictor.from_dir(spec.path, train_cfg, device)
     from wc.baselines import load_baseline  # noqa: PLC0415 - written separately; optional until it lands
 
