@@ -20,12 +20,12 @@ from pathlib import Path
 from typing import Any
 
 from wc.atomic import write_atomic
+from wc.baselines import BASELINES
 from wc.eval.plots import plot_speed_accuracy, speed_accuracy_rows
 
 # The paper's Table 1 (its own data; ../shared/reference/baselines.md): position MSE, velocity MSE, penetration %
 PAPER_TABLE1 = {"robocraft": (0.0598, 0.0106, 13.88), "robocook": (0.0575, 0.0105, 10.28),
                 "adaptigraph": (0.0323, 0.0098, 24.84), "worldcontact": (0.0002, 0.0002, 0.35)}
-BASELINES = ("robocraft", "robocook", "adaptigraph")
 MARGIN_GOAL = 10.0  # the paper's margin: WorldContact's position MSE this many times below the best baseline's
 PENETRATION_GOAL_PCT = 0.35
 
@@ -79,6 +79,13 @@ def method_kinds(metrics: dict[str, Any]) -> dict[str, str]:
             for m in metrics["speed_accuracy"]["methods"]}
 
 
+def chart_rows(metrics: dict[str, Any], speed: dict[str, Any] | None) -> tuple[list[list[object]], list[list[object]]]:
+    """The chart's rows: one rollout per method (the metrics report's) and the batched ones (the speed report's)."""
+    chart, kinds = metrics["speed_accuracy"]["methods"], method_kinds(metrics)
+    single = speed_accuracy_rows(chart, frame_dt(metrics, speed), kinds)
+    return single, batched_rows(speed, chart, kinds) if speed else []
+
+
 def frame_dt(metrics: dict[str, Any], speed: dict[str, Any] | None) -> float:
     """The frame dt of the evaluated store (the metrics report's, else the speed report's)."""
     dt = metrics.get("dt") or (speed or {}).get("dt")
@@ -92,9 +99,10 @@ def _best_baseline(methods: dict[str, dict[str, Any]]) -> str | None:
     return min(scored, key=lambda b: methods[b]["position_mse_m2"]) if scored else None
 
 
-def table_markdown(metrics: dict[str, Any], trainings: dict[str, dict[str, Any]], speed: dict[str, Any] | None,
-                   title: str) -> str:
-    """The report: Table 1 with the paper's figures, per-task position MSE, training budgets, speed, stability."""
+def table_markdown(metrics: dict[str, Any], trainings: dict[str, dict[str, Any]], title: str,
+                   rows: tuple[list[list[object]], list[list[object]]]) -> str:
+    """The report: Table 1 with the paper's figures, per-task position MSE, training budgets, speed (`rows`, from
+    chart_rows), stability."""
     methods, stability = metrics["methods"], metrics["stability"]["methods"]
     best = _best_baseline(methods)
     best_mse = methods[best]["position_mse_m2"] if best else None
@@ -125,19 +133,18 @@ def table_markdown(metrics: dict[str, Any], trainings: dict[str, dict[str, Any]]
     lines += [f"| {name} | " + " | ".join(_fmt(m["per_task"].get(t, {}).get("position_mse_m2")) for t in tasks) + " |"
               for name, m in methods.items()]
     if trainings:
-        lines += ["", "## Training budget (each learned method on the same train split, side by side on the GPU)", "",
+        lines += ["", "## Training budget (each learned method on the same train split)", "",
                   "| method | steps | wall min | s/step (median) | stopped by | best validation loss |", "|---|---|---|---|---|---|"]
         lines += [f"| {n} | {t['steps']} | {_fmt(t['wall_s'] / 60 if t['wall_s'] else None, '.1f')} | "
                   f"{_fmt(t['s_per_step'], '.3f')} | {t['stopped_by']} | {_fmt(t['val_loss'], '.4g')} |"
                   for n, t in trainings.items()]
-    chart, kinds = metrics["speed_accuracy"]["methods"], method_kinds(metrics)
     lines += ["", f"## Speed and accuracy ({metrics['speed_accuracy']['rollouts']} charted rollouts, every method)", "",
               "| method | sim s / wall s (one rollout) | position MSE m² | penetration % |", "|---|---|---|---|"]
-    for name, _, s, mse, pen in speed_accuracy_rows(chart, frame_dt(metrics, speed), kinds):
+    single, batched = rows
+    for name, _, s, mse, pen in single:
         lines.append(f"| {name} | {_fmt(s, '.3g')} | {_fmt(mse)} | {_fmt(pen, '.2f')} |")
-    if speed:
-        for name, _, s, mse, pen in batched_rows(speed, chart, kinds):
-            lines.append(f"| {name} (batched, aggregate) | {_fmt(s, '.3g')} | {_fmt(mse)} | {_fmt(pen, '.2f')} |")
+    for name, _, s, mse, pen in batched:
+        lines.append(f"| {name} (batched, aggregate) | {_fmt(s, '.3g')} | {_fmt(mse)} | {_fmt(pen, '.2f')} |")
     lines += ["", "## Stability (first step at which a long rollout diverges)", "",
               "| method | diverged | median first divergence step of those that did |", "|---|---|---|"]
     for name, s in stability.items():
@@ -167,13 +174,11 @@ def main(argv: list[str] | None = None) -> None:
     metrics = json.loads(Path(args.metrics).read_text())
     speed = json.loads(Path(args.speed).read_text()) if args.speed else None
     trainings = training_rows(Path(args.trainings)) if args.trainings else {}
-    text = table_markdown(metrics, trainings, speed, args.title)
+    rows = chart_rows(metrics, speed)
+    text = table_markdown(metrics, trainings, args.title, rows)
     write_atomic(args.out, lambda tmp: tmp.write_text(text))
     if args.chart:
-        chart, kinds = metrics["speed_accuracy"]["methods"], method_kinds(metrics)
-        rows = speed_accuracy_rows(chart, frame_dt(metrics, speed), kinds) + (
-            batched_rows(speed, chart, kinds) if speed else [])
-        plot_speed_accuracy(rows, args.chart, metrics["speed_accuracy"]["rollouts"])
+        plot_speed_accuracy(rows[0] + rows[1], args.chart, metrics["speed_accuracy"]["rollouts"])
 
 
 if __name__ == "__main__":
