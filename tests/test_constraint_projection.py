@@ -90,3 +90,19 @@ def test_pinned_vertices_stay_where_the_pads_hold_them(scene):
     out, _, report = projection.project(x, x.clone(), torch.zeros_like(x), DT, [], pinned)
     assert torch.equal(out[pinned], x[pinned])
     assert report.converged.all()
+
+
+def test_final_edge_passes_restore_the_edges_an_unconverged_loop_left(scene):
+    rest = torch.as_tensor(scene.objects["bag"].vertices, dtype=torch.float64)
+    centre = rest.mean(0)
+    x = (centre + 2.0 * (rest - centre))[None]  # every edge twice its rest length
+    v = torch.zeros_like(x)
+    one_pass = ConstraintProjection(scene, iterations=1)
+    _, _, short = one_pass.project(x, x.clone(), v, DT, [])
+    guarded = ConstraintProjection(scene, iterations=1, final_edge_passes=300)
+    out, v_out, report = guarded.project(x, x.clone(), v, DT, [])
+    assert not short.converged.all() and short.strain_after.max() > 0.15  # one pass does not bring them back
+    assert report.converged.all() and report.strain_after.max() < 0.12  # the final passes do (within 0.1 mm)
+    assert torch.allclose(v_out, (out - x) / DT)  # velocities follow the edge corrections
+    with pytest.raises(ValueError, match="final_edge_passes"):
+        ConstraintProjection(scene, final_edge_passes=-1)

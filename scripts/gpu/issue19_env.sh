@@ -21,5 +21,5 @@ TRAIN_SETS=(
 EXP_SETS=(--set expand.target_trajectories=${TARGET:-150} --set expand.max_minutes=${EXPAND_MINUTES:-3.5} --set expand.max_attempts=${ATTEMPTS_EXPAND:-600}
   --set expand.batch_size=${EXPAND_BATCH:-64} --set expand.device=cuda --set validate.device=cuda --set sim.device=cuda
   --set sim.worlds=32 --set expand.pad_carry=${PAD_CARRY:-false} --set expand.untangle=${UNTANGLE:-bounded+rollback}
-  --set expand.self_contact=${SELF_CONTACT:-false} --set expand.untangle_share=${SHARE:-0.8})
+  --set expand.self_contact=${SELF_CONTACT:-false} --set expand.untangle_share=${SHARE:-0.8} ${EXTRA_EXP_SETS:-})
 mkdir -p /tmp/run

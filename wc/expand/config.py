@@ -26,6 +26,7 @@ class ExpandConfig:
     projection: str = "joint"
     projection_iterations: int = 50  # joint: loop passes at most (it stops once edges and contacts hold)
     projection_edge_ratio: Range = (0.9, 1.1)  # joint: edge length / rest length kept within these
+    projection_final_edge_passes: int = 0  # joint: edge-only passes after a loop that left edges violated (0: none)
     pad_carry: bool = False  # joint: cloth held between closed finger pads moves with them (wc.expand.carry)
     pad_carry_radius_m: float = 0.004  # ... a cloth vertex this close to both pads of one arm is held
     self_contact: bool = False  # joint: cloth kept sim.self_contact_gap_m from its own triangles (wc.expand.self_contact)
@@ -67,6 +68,8 @@ class ExpandConfig:
             raise ValueError(f"max_minutes must be >= 0 (0: no limit), got {self.max_minutes}")
         if self.projection_iterations < 1:
             raise ValueError(f"projection_iterations must be >= 1, got {self.projection_iterations}")
+        if self.projection_final_edge_passes < 0:
+            raise ValueError(f"projection_final_edge_passes must be >= 0, got {self.projection_final_edge_passes}")
         lo, hi = self.projection_edge_ratio
         if not 0 < lo <= 1 <= hi:
             raise ValueError(f"projection_edge_ratio must satisfy 0 < min <= 1 <= max, got {self.projection_edge_ratio}")

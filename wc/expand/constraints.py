@@ -9,6 +9,9 @@ both hold within tolerance:
   corrections do not (../shared/reference/learned-simulators.md);
 - contacts: vertices inside a body go to the surface of the union of the bodies (`ContactProjection.push_out`);
 - optionally self-contact: cloth vertices kept a gap from their own mesh's triangles (wc.expand.self_contact).
+Where the loop ends unconverged (contacts, self-contact and edges fighting, e.g. a strap squeezed between closing
+pads), `final_edge_passes` more edge-only passes can follow: a strained edge is what tears a generated bag
+(validate's blow_up), while a shallow penetration left behind stays within the penetration check's tolerance.
 Velocities follow the edge corrections (v += Δx_edge / Δt, as the projection stage's V = ΔX / Δt), but a contact
 correction injects none: the push moves the vertex, and only its velocity into the surface is removed (a
 self-contact correction moves positions only).
@@ -62,18 +65,22 @@ class ConstraintProjection:
     """Edge limits and contacts of a scene's cloth, projected together (module doc).
 
     edge_ratio: (min, max) length / rest length; iterations: loop passes at most; tolerance_m: allowed edge
-    overshoot [m] and penetration depth [m] when the loop stops early.
+    overshoot [m] and penetration depth [m] when the loop stops early; final_edge_passes: edge-only passes at most
+    after a loop that ended with edges still violated (0: none).
     """
 
     def __init__(self, scene, edge_ratio: tuple[float, float] = (0.9, 1.1), iterations: int = 50,  # noqa: ANN001
-                 tolerance_m: float = 1e-4, self_contact: SelfContactSeparation | None = None) -> None:
+                 tolerance_m: float = 1e-4, self_contact: SelfContactSeparation | None = None,
+                 final_edge_passes: int = 0) -> None:
         lo, hi = edge_ratio
         if not 0 < lo <= 1 <= hi:
             raise ValueError(f"edge_ratio must satisfy 0 < min <= 1 <= max, got {edge_ratio}")
-        if iterations < 1 or not tolerance_m > 0:
-            raise ValueError(f"need iterations >= 1 and tolerance_m > 0, got {iterations}, {tolerance_m}")
+        if iterations < 1 or not tolerance_m > 0 or final_edge_passes < 0:
+            raise ValueError(f"need iterations >= 1, tolerance_m > 0 and final_edge_passes >= 0, got {iterations}, "
+                             f"{tolerance_m}, {final_edge_passes}")
         self.contacts = ContactProjection(scene)
         self.iterations, self.tolerance_m, self.self_contact = iterations, tolerance_m, self_contact
+        self.final_edge_passes = final_edge_passes
         slices = scene.vertex_slices()
         edges = [unique_edges(m.faces).astype(np.int64) + slices[n].start for n, m in scene.objects.items()
                  if scene.object_kinds[n] == "cloth"]
@@ -158,6 +165,12 @@ class ConstraintProjection:
             if bool((self._violation(out, lo, hi) <= self.tolerance_m).all()
                     and (self._depth(out, bodies) <= self.tolerance_m).all() and (short <= self.tolerance_m).all()):
                 break
+        for _ in range(self.final_edge_passes):  # edges first where the loop left them violated (module doc)
+            if bool((self._violation(out, lo, hi) <= self.tolerance_m).all()):
+                break
+            before = out.clone()
+            self._edges_pass(out, inv_mass, colours, lo, hi)
+            edge_shift += out - before
         v_out = v + edge_shift / dt
         inward = (v_out * normal).sum(-1, keepdim=True).clamp_max(0.0)  # velocity into the surface of a pushed vertex
         v_out = torch.where(pushed[..., None], v_out - inward * normal, v_out)
@@ -182,12 +195,14 @@ class JointStepProjection:
 
     def __init__(self, scene, edge_ratio: tuple[float, float], iterations: int,  # noqa: ANN001
                  carry: PadCarry | None = None, untangle: SelfIntersectionGuard | CrossingFreeStep | None = None,
-                 self_contact: SelfContactSeparation | None = None) -> None:
+                 self_contact: SelfContactSeparation | None = None, final_edge_passes: int = 0) -> None:
         """carry: cloth held between closed pads follows them and stays pinned (wc.expand.carry); untangle: self-
         crossings the projected step leaves are rolled back (wc.expand.untangle), or the step is bounded so that none
         can form (wc.expand.crossing_free); self_contact: cloth kept a gap
-        from its own triangles in the projection (wc.expand.self_contact); None: none of these."""
-        self.constraints = ConstraintProjection(scene, edge_ratio, iterations, self_contact=self_contact)
+        from its own triangles in the projection (wc.expand.self_contact); None: none of these; final_edge_passes: as
+        ConstraintProjection's."""
+        self.constraints = ConstraintProjection(scene, edge_ratio, iterations, self_contact=self_contact,
+                                                final_edge_passes=final_edge_passes)
         self.scene, self.carry, self.untangle = scene, carry, untangle
         self.stats = {"steps": 0, "not_converged": 0, "max_strain_before": 0.0, "max_strain_after": 0.0,
                       "max_depth_before_m": 0.0, "max_depth_after_m": 0.0, "carried_vertex_steps": 0}

@@ -90,7 +90,7 @@ def joint_projection(cfg: ExpandConfig, scene: Scene, sim: SimConfig, validate_c
     self_contact = (SelfContactSeparation(scene, sim.self_contact_gap_m, sim.self_contact_filter_rings)
                     if cfg.self_contact else None)
     return JointStepProjection(scene, cfg.projection_edge_ratio, cfg.projection_iterations, carry,
-                               untangle, self_contact)
+                               untangle, self_contact, cfg.projection_final_edge_passes)
 
 
 def _untangle_stats(projection: JointStepProjection | None) -> dict[str, Any] | None:
