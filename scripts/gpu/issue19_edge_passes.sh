@@ -11,7 +11,7 @@ step "data start"
 bash scripts/gpu/issue19_hold.sh data > $R/data.log 2>&1
 step "data rc=$? $(tail -c 400 $R/data.log | tr '\r\n' '  ')"
 export MODEL=models/pretrained/worldcontact-lift-handle SELF_CONTACT=true EXPAND_MINUTES=0.1 EXPAND_BATCH=64 \
-  TEACHER=25 SKIP_EVAL=1
+  TEACHER=25 SKIP_EVAL=1 EXPAND_TIMEOUT=420 TEACHER_TIMEOUT=300
 for passes in ${PASSES:-0 50}; do
   TAG=passes$passes EXTRA_EXP_SETS="--set expand.projection_final_edge_passes=$passes" \
     bash scripts/gpu/issue19_expand.sh > $R/expand_$passes.log 2>&1
