@@ -40,7 +40,7 @@ def timed_phases() -> tuple[dict[str, float], list[tuple[object, str, object]]]:
 
     targets = {"reset_batch (planning + settle)": (runner, "reset_batch"), "settle": (NewtonSimulator, "settle"),
                "rollout (execute)": (runner, "execute"), "solver steps (_substeps)": (NewtonSimulator, "_substeps"),
-               "state read-back (_read_state)": (NewtonSimulator, "_read_state"),
+               "state read-back (read_state)": (NewtonSimulator, "read_state"),
                "forward kinematics (link_poses)": (Scene, "link_poses"), "checks (judge)": (runner, "judge"),
                "self-intersection check": (predicates.PREDICATES, "self_intersection")}
     seconds, originals = dict.fromkeys(targets, 0.0), []

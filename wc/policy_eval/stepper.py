@@ -1,9 +1,9 @@
 """One simulated frame at a time: the closed loop needs what NewtonSimulator.rollout_batch does internally
 (write the frame-0 state, advance one frame, read the state back) with the next action chosen in between.
 
-NewtonSimulator has no public per-frame API yet, so this is the one place that calls its `_write_state`,
-`_advance_frame` and `_read_state`; the frames it produces are those of `rollout_batch` (same solver
-history, same substeps), which tests/test_policy_eval.py checks.
+It drives NewtonSimulator's public per-frame API (`set_state`, `advance_frame`, `read_state`, the steps
+`rollout_batch` is made of); the frames it produces are those of `rollout_batch` (same solver history, same
+substeps), which tests/test_policy_eval.py checks.
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ class FrameStepper:
     def start(self, state: ObjectState, action: np.ndarray) -> None:
         """Frame 0: object state and robot command (14,); forgets the solver's history."""
         self.action = np.asarray(action, np.float32).reshape(14)
-        self.sim._write_state([state], self.action[None])
+        self.sim.set_state([state], self.action[None])
 
     def advance(self, action: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Move the robot from the current command to `action` (14,) over one frame; returns the object
@@ -34,7 +34,7 @@ class FrameStepper:
         if self.action is None:
             raise RuntimeError("FrameStepper.advance before start")
         nxt = np.asarray(action, np.float32).reshape(14)
-        self.sim._advance_frame(self.action[None], nxt[None])
+        self.sim.advance_frame(self.action[None], nxt[None])
         self.action = nxt
-        x, v = self.sim._read_state()
+        x, v = self.sim.read_state()
         return x[0], v[0]

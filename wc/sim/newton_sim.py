@@ -131,10 +131,11 @@ class NewtonSimulator:
                 self._rigid_bodies[name] = body
         return b
 
-    # -- state in and out --------------------------------------------------------------------
+    # -- state in and out, one frame at a time (public: what rollout_batch is made of, for closed loops) ------
 
-    def _write_state(self, states: list[ObjectState], action: np.ndarray) -> None:
-        """Set particles, rigid bodies and robot links of every world (frame-0 inputs)."""
+    def set_state(self, states: list[ObjectState], action: np.ndarray) -> None:
+        """Set particles, rigid bodies and robot links of every world (frame-0 inputs: one state and action (14,)
+        per world, the last repeated for the rest) and forget the solver's history."""
         q = np.zeros((self.worlds, self.particles_per_world, 3), np.float32)
         qd = np.zeros_like(q)
         body_q = self.state_0.body_q.numpy().reshape(self.worlds, self.bodies_per_world, 7)
@@ -166,7 +167,7 @@ class NewtonSimulator:
         self.solver.reset(self.state_0, flags=0)
         self.pipeline.reset_contact_matching()
 
-    def _read_state(self) -> tuple[np.ndarray, np.ndarray]:
+    def read_state(self) -> tuple[np.ndarray, np.ndarray]:
         """Concatenated object vertices of every world: x, v each (W, N, 3), not checked finite."""
         q = qd = np.zeros((self.worlds, 0, 3), np.float32)
         if self.particles_per_world:
@@ -202,7 +203,7 @@ class NewtonSimulator:
             self.solver.step(self.state_0, self.state_1, self.control, self.contacts, self.cfg.dt_s)
             self.state_0, self.state_1 = self.state_1, self.state_0
 
-    def _advance_frame(self, action_now: np.ndarray, action_next: np.ndarray) -> None:
+    def advance_frame(self, action_now: np.ndarray, action_next: np.ndarray) -> None:
         """One recorded frame (substeps solver steps) under actions (W, 14) -> (W, 14)."""
         sub = np.stack([interpolate_actions(a0, a1, self.cfg.substeps) for a0, a1 in zip(action_now, action_next)])
         poses = self.scene.link_poses(sub)  # (W, S, L, 7)
@@ -235,13 +236,13 @@ class NewtonSimulator:
         """Let objects come to rest under gravity with the robot held at `actions` (14,) each."""
         n = len(states)
         held = np.stack(self._batch(list(actions)))
-        self._write_state(self._batch(list(states)), held)
+        self.set_state(self._batch(list(states)), held)
         frames = int(round(seconds / self.cfg.frame_dt_s))
-        x, v = self._read_state()
+        x, v = self.read_state()
         for _ in range(frames):
             previous = x
-            self._advance_frame(held, held)
-            x = self._read_state()[0]
+            self.advance_frame(held, held)
+            x = self.read_state()[0]
             v = (x - previous) / self.cfg.frame_dt_s  # the frame-mean velocity, as rollout_batch records it
         return [ObjectState(x[w], v[w]) for w in range(n)]
 
@@ -257,11 +258,11 @@ class NewtonSimulator:
         acts = np.stack(self._batch([np.asarray(a, np.float32) for a in actions]))  # (W, T, 14)
         if acts.shape[-1] != 14:
             raise ValueError(f"actions must be (T, 14), got {acts.shape[1:]}")
-        self._write_state(self._batch(list(initial)), acts[:, 0])
-        frames = [self._read_state()]
+        self.set_state(self._batch(list(initial)), acts[:, 0])
+        frames = [self.read_state()]
         for k in range(acts.shape[1] - 1):
-            self._advance_frame(acts[:, k], acts[:, k + 1])
-            frames.append(self._read_state())
+            self.advance_frame(acts[:, k], acts[:, k + 1])
+            frames.append(self.read_state())
             if on_frame is not None:
                 on_frame()
         x = np.stack([f[0] for f in frames], axis=1)  # (W, T, N, 3)
