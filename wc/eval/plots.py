@@ -96,17 +96,19 @@ def _finite(value: object) -> bool:
 
 
 def _speed_panel(ax: Any, rows: list[list[object]], column: int, label: str, log_y: bool) -> None:
-    """One labelled marker per row (kind -> marker shape) at (speed, rows[column]) and the Pareto front."""
+    """One marker per row (kind -> shape, row -> colour; named in the legend, the Pareto front's also beside the
+    marker) at (speed, rows[column]) and the Pareto front."""
+    colours = {str(r[0]): f"C{i % 10}" for i, r in enumerate(rows)}  # the same colour in both panels
     shown = [(str(r[0]), str(r[1]), float(r[2]), float(r[column])) for r in rows
              if _finite(r[2]) and _finite(r[column]) and (float(r[column]) > 0 or not log_y)]
-    for i, (name, kind, speed, value) in enumerate(shown):
-        ax.scatter(speed, value, color=f"C{i % 10}", marker=MARKERS.get(kind, "o"), s=40)
-        ax.annotate(name, (speed, value), textcoords="offset points", xytext=(5, 4), fontsize=7)
+    for name, kind, speed, value in shown:
+        ax.scatter(speed, value, color=colours[name], marker=MARKERS.get(kind, "o"), s=40, label=name)
     front = [shown[i] for i in pareto_front([(s, v) for _, _, s, v in shown])]
     if len(front) > 1:
         ax.step([s for _, _, s, _ in front], [v for _, _, _, v in front], where="post", color="k", linestyle="--",
                 linewidth=0.8, label="Pareto front")
-        ax.legend(fontsize=8)
+    for name, _, speed, value in front:
+        ax.annotate(name, (speed, value), textcoords="offset points", xytext=(5, 4), fontsize=7)
     ax.set_xscale("log")
     if log_y:
         ax.set_yscale("log")
@@ -119,9 +121,10 @@ def plot_speed_accuracy(rows: list[list[object]], path: str | Path, rollouts: in
     """Speed against held-out position MSE (log-log) and against penetration, one labelled marker per method and
     setting (squares: Newton settings), Pareto fronts drawn; to `path` (PNG)."""
     plt = pyplot()
-    fig, axes = plt.subplots(1, 2, figsize=(12.8, 4.8), constrained_layout=True)
+    fig, axes = plt.subplots(1, 2, figsize=(15.0, 5.0), constrained_layout=True)
     _speed_panel(axes[0], rows, 3, "held-out position MSE [m²] (lower is better)", log_y=True)
     _speed_panel(axes[1], rows, 4, "penetrating cloth area [%] (lower is better)", log_y=False)
+    axes[1].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0), borderaxespad=0.0)  # one key for both
     on = f" ({rollouts} held-out rollouts, the same for every method)" if rollouts else ""
     fig.suptitle(f"Speed against accuracy{on}; rollout only", fontsize=10)
     return save_figure_atomic(fig, path)
