@@ -22,8 +22,9 @@ from wc.config import ParamsError, load_section
 from wc.data.store import TrajectoryStore, copy_store
 from wc.dynamics import ObjectState
 from wc.expand import (ExpandConfig, NoSourceEpisodesError, SourceEpisode, check_clear_at_start, check_on_table,
-                       expand, finite_rollout, pick_parent, plan_episode, planar_transform, presettle_state)
+                       expand, pick_parent, plan_episode, planar_transform, presettle_state)
 from wc.model.config import ModelConfig
+from wc.model.learned_dynamics import finite_rollout
 from wc.model.projection import edges_from_faces
 from wc.model.worldcontact import WorldContact
 from wc.scene.config import SceneConfig

@@ -1,13 +1,15 @@
 """One interface for everything that advances the object state S_t under prescribed inputs B_t.
 
-The Newton source simulator, WorldContact and the baselines all implement `Dynamics`, so that
-`expand`, `evaluate` and the benchmarks are written once against it.
+`Dynamics` is what the Newton source simulator (wc.sim.newton_sim.NewtonSimulator) and every learned predictor -
+WorldContact, the baselines, the references - answer alike: frame-0 object states and 14-D commanded actions in,
+(x, v) per frame out (the learned ones through wc.model.learned_dynamics.LearnedDynamics, which the expand stage
+rolls out with).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 
@@ -26,6 +28,7 @@ class ObjectState:
             raise ValueError("object state has non-finite positions or velocities")
 
 
+@runtime_checkable
 class Dynamics(Protocol):
     """Advances S_t by frames of the recorded frame dt under commanded actions a_t (14-D)."""
 

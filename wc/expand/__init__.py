@@ -6,11 +6,11 @@ from wc.expand.config import ExpandConfig
 from wc.expand.contact import ContactProjectedPredictor, ContactProjection
 from wc.expand.plan import (NoSourceEpisodesError, PlannedEpisode, SourceEpisode, check_clear_at_start, pick_parent,
                             plan_episode, presettle_state, source_episodes)
-from wc.expand.batched_rollout import Rollout, finite_rollout, rollout_batch
+from wc.expand.batched_rollout import Rollout, rollout_batch
 from wc.expand.stage import expand, verdict
 from wc.expand.transform import check_on_table, planar_transform
 
 __all__ = ["ContactProjectedPredictor", "ContactProjection", "ExpandConfig", "NoSourceEpisodesError",
            "PlannedEpisode", "Rollout", "SourceEpisode", "check_clear_at_start", "check_on_table", "expand",
-           "finite_rollout", "pick_parent", "plan_episode", "planar_transform", "presettle_state", "rollout_batch",
+           "pick_parent", "plan_episode", "planar_transform", "presettle_state", "rollout_batch",
            "source_episodes", "verdict"]
