@@ -115,8 +115,11 @@ class ConstraintProjection:
         sd = torch.cat([g.depth(x[:, rows])[0] for g in bodies], dim=-1)  # (B, n, K)
         return (-sd.amin(dim=-1)).clamp_min(0.0).amax(dim=-1)
 
-    def _edges_pass(self, x: Tensor, inv_mass: Tensor, colours, lo: Tensor, hi: Tensor) -> Tensor:  # noqa: ANN001
-        """One Gauss-Seidel pass over the colours; x (B, N, 3) corrected in place and returned."""
+    def _edges_pass(self, x: Tensor, inv_mass: Tensor, colours, lo: Tensor, hi: Tensor,  # noqa: ANN001
+                    shift: Tensor) -> Tensor:
+        """One Gauss-Seidel pass over the colours; x (B, N, 3) corrected in place and returned, its move added to
+        shift (B, N, 3)."""
+        before = x.clone()
         for i, j, e in colours:
             d = x[:, j] - x[:, i]
             length = d.norm(dim=-1).clamp_min(1e-12)
@@ -126,6 +129,7 @@ class ConstraintProjection:
             step = ((length - target) / (length * share))[..., None] * d  # total move, split by inverse mass
             x[:, i] += wi[..., None] * step
             x[:, j] -= wj[..., None] * step
+        shift += x - before
         return x
 
     @torch.no_grad()
@@ -146,9 +150,7 @@ class ConstraintProjection:
         pairs = self.self_contact.pairs(x) if self.self_contact is not None else []
         done = 0
         for done in range(1, self.iterations + 1):
-            before = out.clone()
-            self._edges_pass(out, inv_mass, colours, lo, hi)
-            edge_shift += out - before
+            self._edges_pass(out, inv_mass, colours, lo, hi, edge_shift)
             cloth = self.contacts.rows.to(x.device)
             if len(cloth) and bodies:
                 moved = self.contacts.push_out(out[:, cloth], bodies)
@@ -168,9 +170,7 @@ class ConstraintProjection:
         for _ in range(self.final_edge_passes):  # edges first where the loop left them violated (module doc)
             if bool((self._violation(out, lo, hi) <= self.tolerance_m).all()):
                 break
-            before = out.clone()
-            self._edges_pass(out, inv_mass, colours, lo, hi)
-            edge_shift += out - before
+            self._edges_pass(out, inv_mass, colours, lo, hi, edge_shift)
         v_out = v + edge_shift / dt
         inward = (v_out * normal).sum(-1, keepdim=True).clamp_max(0.0)  # velocity into the surface of a pushed vertex
         v_out = torch.where(pushed[..., None], v_out - inward * normal, v_out)

@@ -61,8 +61,8 @@ class LearnedDynamics:
 
     def body_poses(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Link poses (B, T, L, 7) and environment poses (B, T, E, 7) under actions (B, T, 14)."""
-        links = self.scene.link_poses(actions)
-        env = np.broadcast_to(self.scene.env_poses(), (*links.shape[:2], *self.scene.env_poses().shape))
+        links, env = self.scene.link_poses(actions), self.scene.env_poses()
+        env = np.broadcast_to(env, (*links.shape[:2], *env.shape))
         return links, np.ascontiguousarray(env)
 
     def rollout_arrays(self, x0: np.ndarray, v0: np.ndarray, actions: np.ndarray
