@@ -8,7 +8,7 @@
 SIM_SETS=(--set sim.device=cuda --set validate.device=cuda --set sim.worlds=${WORLDS:-32} --set agent.workers=${WORKERS:-1}
   --set "agent.tasks=${TASKS:-[lift_handle, grasp_handle, shake, lift_two_arms, place, release_drop]}"
   --set agent.episodes_per_task=${EPISODES:-29} --set agent.max_attempts_per_task=${ATTEMPTS:-96})
-VAL_SETS=(--set validate.val_per_task=2 --set validate.test_per_task=2 --set validate.train_on_task_failures=${TASK_FAILURES:-true})
+VAL_SETS=(--set validate.val_per_task=${VAL_PER_TASK:-2} --set validate.test_per_task=${TEST_PER_TASK:-2} --set validate.train_on_task_failures=${TASK_FAILURES:-true})
 TRAIN_SETS=(
   --set "train.base={steps: ${BASE_STEPS:-14000}, peak_lr: ${PEAK_LR:-1.0e-4}, start_lr: 1.0e-6, final_lr: 5.0e-6, warmup_steps: ${BASE_WARMUP:-2000}}"
   --set "train.projection={steps: ${PROJ_STEPS:-4000}, peak_lr: 2.0e-5, start_lr: 2.0e-7, final_lr: 5.0e-6, warmup_steps: 500}"

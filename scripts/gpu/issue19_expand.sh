@@ -19,7 +19,7 @@ timeout ${TEACHER_TIMEOUT:-240} python -m stages.teacher_check --params params.y
 fi
 if [ "${SKIP_EVAL:-0}" != 1 ]; then
 timeout ${EVAL_TIMEOUT:-200} python -m stages.evaluate --params params.yaml --store /tmp/run/store.zarr \
-  --set evaluate.device=cuda --set evaluate.stability_frames=100 --set evaluate.stability_per_task=2 \
+  --set evaluate.device=cuda --set evaluate.stability_frames=100 --set evaluate.stability_per_task=${STAB_PER_TASK:-2} \
   --set "evaluate.methods={worldcontact: {kind: worldcontact, path: $MODEL}, constant_velocity: {kind: constant_velocity}, zero_motion: {kind: zero_motion}}" \
   --metrics $OUT/heldout_metrics_$TAG.json --stability-csv $OUT/heldout_stability_$TAG.csv \
   --stability-png /tmp/run/stability_$TAG.png 2>&1 | tail -4
