@@ -22,9 +22,17 @@ from wc.data.store import TrajectoryStore
 from wc.eval import (ConstantVelocity, ErrorTally, EvaluateConfig, PenetrationTally, WorldContactPredictor, ZeroMotion,
                      cloth_signed_distance, first_divergence, max_edge_strain, mesh_signed_distance,
                      penetrating_area_pct, squared_error)
-from wc.eval.cases import held_out_phases
+from wc.baselines import build_baseline, save_baseline
+from wc.baselines.config import BaselinesConfig
+from wc.dynamics import Dynamics, ObjectState
+from wc.eval.cases import CaseReader, held_out_phases
 from wc.eval.config import MethodSpec
+from wc.eval.methods import LearnedMethod
+from wc.eval.newton_method import NewtonMethod, Replay
 from wc.eval.predictors import load_predictor
+from wc.eval.stage import load_methods
+from wc.scene.config import SceneConfig
+from wc.sim.config import SimConfig
 from wc.model.config import ModelConfig
 from wc.model.layout import scene_layout
 from wc.model.rollout import rollout
@@ -221,6 +229,43 @@ def _stage_params(params: dict[str, Any], models: Path) -> dict[str, Any]:
         "constant_velocity": {"kind": "constant_velocity"},
     })
     return p
+
+
+def test_every_method_is_dynamics_of_a_case_and_steps_as_it_rolls_out(tmp_path, store_path, params):
+    """Each kind evaluate loads is `Dynamics` over a case with its recorded inputs; the learned ones (WorldContact, a
+    baseline with a 4-frame history, the references) give the same frames stepped one at a time as rolled out."""
+    models = tmp_path / "models"
+    (models / "worldcontact").mkdir(parents=True)
+    save_weights(_tiny_model(params), models / "worldcontact" / "model.safetensors", {"projection": True})
+    torch.manual_seed(0)
+    baseline = build_baseline("robocraft", load_section(params, "baselines", BaselinesConfig).models["robocraft"])
+    save_baseline(baseline, models / "baselines" / "robocraft", {})
+    p = _stage_params(params, models)
+    p["evaluate"]["methods"]["newton"] = {"kind": "newton", "substeps": 2}
+    cfg, scene_cfg = load_section(p, "evaluate", EvaluateConfig), load_section(p, "scene", SceneConfig)
+    methods, skipped = load_methods(cfg, load_section(p, "train", TrainConfig), 0.02, torch.device("cpu"), scene_cfg,
+                                    load_section(p, "sim", SimConfig))
+    assert set(methods) == set(cfg.methods) and not skipped
+    assert isinstance(methods["newton"], NewtonMethod) and issubclass(Replay, Dynamics)  # built: test_eval_newton
+    store = TrajectoryStore(store_path)
+    reader = CaseReader(store, scene_cfg, 0.02, torch.device("cpu"))
+    case = reader.case(episode_phases(store, "ep_000003")[0], 4)  # the hand-off's first phase: a held sphere
+    initial = ObjectState(case.x[0], case.v[0])
+    for name, method in methods.items():
+        if name == "newton":
+            continue
+        assert isinstance(method, LearnedMethod)
+        dynamics = method.dynamics(case, DT)
+        assert isinstance(dynamics, Dynamics), name
+        x, v = dynamics.rollout(initial, case.actions)
+        dynamics.start(initial, case.actions[0])
+        states = [initial]
+        for action in case.actions[1:]:
+            states.append(dynamics.step(states[-1], action))
+        np.testing.assert_allclose(np.stack([s.x for s in states]), x, rtol=0, atol=1e-6, err_msg=name)
+        np.testing.assert_allclose(np.stack([s.v for s in states]), v, rtol=0, atol=1e-4, err_msg=name)
+        with pytest.raises(ValueError, match="not the recorded ones"):  # a case's recording answers its actions only
+            dynamics.rollout(initial, case.actions + np.float32(0.01))
 
 
 @pytest.mark.slow

@@ -16,12 +16,13 @@ import torch
 from tests.conftest import load_params
 from wc.config import ParamsError, load_section
 from wc.data.store import TrajectoryStore, TrajectoryWriter
-from wc.dynamics import ObjectState
+from wc.dynamics import Dynamics, ObjectState
 from wc.eval.cases import CaseReader
 from wc.eval.config import EvaluateConfig, MethodSpec
-from wc.eval.newton_predictor import NewtonPredictor, coarse_scene_config
+from wc.eval.methods import LearnedMethod, predict
+from wc.eval.newton_method import NewtonMethod, coarse_scene_config
 from wc.eval.predictors import ZeroMotion
-from wc.eval.stage import case_actions, evaluate, held_out_scores
+from wc.eval.stage import evaluate, held_out_scores
 from wc.scene.config import SceneConfig
 from wc.scene.resample import ResolutionMap, surface_map
 from wc.scene.scene import build_scene
@@ -69,17 +70,17 @@ def store_path(tmp_path_factory, configs) -> Path:
 def _case(store_path: Path, scene_cfg: SceneConfig, start: int = 0):
     store = TrajectoryStore(store_path)
     phase = episode_phases(store, "ep_000000")[0]
-    case = CaseReader(store, scene_cfg, 0.02, CPU).case(Phase(phase.episode, start, phase.stop, phase.layout), FRAMES)
-    return store, case, case_actions(store, case)
+    return store, CaseReader(store, scene_cfg, 0.02, CPU).case(Phase(phase.episode, start, phase.stop, phase.layout),
+                                                               FRAMES)
 
 
-def _timed(predictor: NewtonPredictor, case, actions, dt: float) -> tuple[np.ndarray, float]:
-    """Positions (S, N, 3) and the fastest of two timed rollouts, s per step (after the untimed prepare)."""
-    predictor.prepare(case, actions)
+def _timed(method: NewtonMethod, case, dt: float) -> tuple[np.ndarray, float]:
+    """Positions (S, N, 3) and the fastest of two timed rollouts, s per step (after the untimed build)."""
+    dynamics = method.dynamics(case, dt)
     best, x = float("inf"), None
     for _ in range(2):
         t0 = time.perf_counter()
-        x, _ = predictor.rollout_case(case, actions, dt)
+        x, _ = predict(dynamics, case)
         best = min(best, (time.perf_counter() - t0) / case.steps)
     return x, best
 
@@ -91,34 +92,60 @@ def _mse(x: np.ndarray, truth: np.ndarray) -> float:
 @pytest.mark.slow
 def test_reference_replay_reproduces_and_a_coarser_setting_is_faster_and_worse(store_path, configs):
     scene_cfg, sim_cfg = configs
-    store, case, actions = _case(store_path, scene_cfg)
+    store, case = _case(store_path, scene_cfg)
     truth = case.x[1:].astype(np.float64)
-    ref_x, ref_s = _timed(NewtonPredictor(MethodSpec("newton"), scene_cfg, sim_cfg, CPU), case, actions, store.dt)
+    ref_x, ref_s = _timed(NewtonMethod(MethodSpec("newton"), scene_cfg, sim_cfg, CPU), case, store.dt)
     assert ref_x.shape == truth.shape
     assert _mse(ref_x, truth) < 1e-10  # same simulator, same state, same actions: its own determinism only
-    cheap_x, cheap_s = _timed(NewtonPredictor(MethodSpec("newton", substeps=2), scene_cfg, sim_cfg, CPU), case,
-                              actions, store.dt)
+    cheap_x, cheap_s = _timed(NewtonMethod(MethodSpec("newton", substeps=2), scene_cfg, sim_cfg, CPU), case, store.dt)
     assert np.isfinite(cheap_x).all()
     assert cheap_s < ref_s  # 2 instead of 10 solver steps per frame
     fallen = _mse(case.x[:1].astype(np.float64).repeat(case.steps, 0), truth)
     assert 1e-10 < _mse(cheap_x, truth) < fallen  # a different answer, still a falling bag
 
     # replayed from a later stored frame (the solver's history lost) it stays within 1 mm RMS
-    store, late, late_actions = _case(store_path, scene_cfg, start=2)
-    x, _ = NewtonPredictor(MethodSpec("newton"), scene_cfg, sim_cfg, CPU).rollout_case(late, late_actions, store.dt)
+    store, late = _case(store_path, scene_cfg, start=2)
+    x, _ = predict(NewtonMethod(MethodSpec("newton"), scene_cfg, sim_cfg, CPU).dynamics(late, store.dt), late)
     assert _mse(x, late.x[1:]) < 1e-6
 
 
 @pytest.mark.slow
 def test_half_resolution_runs_on_the_coarse_mesh_and_answers_in_the_stored_vertices(store_path, configs):
     scene_cfg, sim_cfg = configs
-    store, case, actions = _case(store_path, scene_cfg)
-    predictor = NewtonPredictor(MethodSpec("newton", cloth_vertices_scale=0.5), scene_cfg, sim_cfg, CPU)
-    x, v = predictor.rollout_case(case, actions, store.dt)
-    (replay,) = predictor._replays.values()
+    store, case = _case(store_path, scene_cfg)
+    method = NewtonMethod(MethodSpec("newton", cloth_vertices_scale=0.5), scene_cfg, sim_cfg, CPU)
+    x, v = predict(method.dynamics(case, store.dt), case)
+    (replay,) = method._replays.values()
     assert replay.sim.scene.num_vertices < 0.6 * case.scene.num_vertices
     assert x.shape == v.shape == case.x[1:].shape and np.isfinite(x).all()
     assert 0 < _mse(x, case.x[1:]) < _mse(case.x[:1].repeat(case.steps, 0), case.x[1:])
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("scale", [None, 0.5], ids=["reference", "half_resolution"])
+def test_stepping_newton_gives_the_rollouts_frames(store_path, configs, scale):
+    """NewtonSimulator.step (through the evaluated Replay, on the stored mesh and on a coarse one) goes on with the
+    solver's history: frame by frame it gives rollout's frames; from another state it starts afresh there."""
+    scene_cfg, sim_cfg = configs
+    store, case = _case(store_path, scene_cfg)
+    method = NewtonMethod(MethodSpec("newton", cloth_vertices_scale=scale), scene_cfg, sim_cfg, CPU)
+    dynamics = method.dynamics(case, store.dt)
+    assert isinstance(dynamics, Dynamics) and isinstance(dynamics.sim, Dynamics)
+    initial, actions = ObjectState(case.x[0], case.v[0]), case.actions
+    x, v = dynamics.rollout(initial, actions)
+    dynamics.start(initial, actions[0])
+    states = [initial]
+    for action in actions[1:]:
+        states.append(dynamics.step(states[-1], action))
+    np.testing.assert_allclose(np.stack([s.x for s in states]), x, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(np.stack([s.v for s in states]), v, rtol=0, atol=1e-4)
+    dynamics.start(initial, actions[0])
+    dynamics.step(initial, actions[1])
+    other = ObjectState(case.x[1], case.v[1])  # the recording's frame 1, not the state the step gave
+    np.testing.assert_allclose(dynamics.step(other, actions[2]).x, dynamics.rollout(other, actions[1:3])[0][1],
+                               rtol=0, atol=1e-6)
+    with pytest.raises(RuntimeError, match="before start"):  # a rollout in between ends the stepped episode
+        dynamics.step(other, actions[2])
 
 
 def test_resolution_map_round_trips_rest_positions(configs):
@@ -216,7 +243,8 @@ def test_every_method_rolls_the_first_chart_case_once_untimed(store_path, config
     cfg = EvaluateConfig(rollout_frames=3, stability_frames=3, methods={"z": MethodSpec("zero_motion")},
                          chart_max_cases=1)
     counting = CountingZeroMotion()
-    out = held_out_scores(CaseReader(store, scene_cfg, 0.02, CPU), phases, {"z": counting}, cfg, store.dt)
+    out = held_out_scores(CaseReader(store, scene_cfg, 0.02, CPU), phases, {"z": LearnedMethod(counting, CPU)}, cfg,
+                          store.dt)
     assert len(out.rolled) == 2 and len(out.charted) == 1
     assert counting.rollouts == 3  # the charted rollout twice (warm-up + timed), the other once
     assert out.chart["z"].steps == out.charted[0]["steps"]  # the warm-up is neither timed nor scored

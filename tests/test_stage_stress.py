@@ -20,6 +20,7 @@ from tests.synthetic_store import write_synthetic_store
 from wc.config import ParamsError, load_section
 from wc.data.store import TrajectoryStore
 from wc.eval.cases import CaseReader
+from wc.eval.methods import LearnedMethod
 from wc.eval.predictors import ConstantVelocity
 from wc.eval.stress import STRESS_HEADER, episode_rollout
 from wc.eval.stress_config import StressConfig
@@ -180,7 +181,7 @@ def test_handoff_rollout_carries_the_prediction_across_the_release(tmp_path, par
     store = TrajectoryStore(path)
     reader = CaseReader(store, load_section(params, "scene", SceneConfig), 0.02, torch.device("cpu"))
     eid = store.episode_ids[0]
-    rollout = episode_rollout(reader, eid, 9, ConstantVelocity(), store.dt)
+    rollout = episode_rollout(reader, eid, 9, LearnedMethod(ConstantVelocity(), torch.device("cpu")), store.dt)
     (first, x0, v0), (second, x1, _) = rollout.phases
     release = first.phase.stop - 1
     assert len(x0) + len(x1) == 9 and len(x0) == release

@@ -3,9 +3,12 @@
     metrics      position / velocity MSE, pooled over vertices and frames, per task and per step
     penetration  exact signed distances of cloth to table, robot boxes and rigid meshes; area-weighted rates
     predictors   the Predictor interface; zero motion, constant velocity, WorldContact checkpoints, baselines
+    methods      every evaluated method as wc.dynamics.Dynamics of a case (load_method, predict)
+    newton_method  the Newton source simulator as a method, at its reference and cheaper settings
     stability    edge strain, divergence step, per-step curves of long rollouts
-    cases        which stored phases are rolled out, with their layout and collision scene
+    cases        which stored phases are rolled out, with their actions, layout and collision scene
     stage        the stage itself (stages/evaluate.py is its command line)
+    stress       the stress stage (stress_truth: its Newton ground truth; video: its side-by-side video)
 """
 
 from wc.eval.config import EvaluateConfig, MethodSpec

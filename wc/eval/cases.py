@@ -1,8 +1,8 @@
 """Evaluation cases: which stored phases are rolled out, and everything a rollout and its scoring need.
 
 A case is one phase (wc.train.data.episode_phases: a hand-off episode has two) read from its first
-frame: the recorded x, v and prescribed body poses, the model's scene layout, and the collision
-scene (table, robot boxes, rigid and held objects) rebuilt from params `scene` for that phase.
+frame: the recorded x, v, commanded actions and prescribed body poses, the model's scene layout, and the
+collision scene (table, robot boxes, rigid and held objects) rebuilt from params `scene` for that phase.
 """
 
 from __future__ import annotations
@@ -25,8 +25,9 @@ from wc.validate.stage import EpisodeScenes, episode_held
 
 @dataclass(frozen=True)
 class Case:
-    """The first `frames` frames of one phase: x, v (T, N, 3), poses (T, P, 7) as the model takes them,
-    link_poses (T, L, 7) in scene.link_names order, cloth_area (N_cloth,) m^2 of the scene's cloth rows."""
+    """The first `frames` frames of one phase: x, v (T, N, 3), the commanded actions (T, 14), poses (T, P, 7) of
+    layout.bodies as recorded, link_poses (T, L, 7) in scene.link_names order, cloth_area (N_cloth,) m^2 of the
+    scene's cloth rows."""
 
     phase: Phase
     task: str
@@ -34,6 +35,7 @@ class Case:
     scene: Scene
     x: np.ndarray
     v: np.ndarray
+    actions: np.ndarray
     poses: np.ndarray
     link_poses: np.ndarray
     cloth_area: np.ndarray
@@ -41,11 +43,6 @@ class Case:
     @property
     def steps(self) -> int:
         return len(self.x) - 1
-
-    def inputs(self, device: torch.device) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """x0, v0 (1, N, 3) and poses (1, T, P, 7) on `device`."""
-        return (torch.from_numpy(self.x[:1].copy()).to(device), torch.from_numpy(self.v[:1].copy()).to(device),
-                torch.from_numpy(self.poses[None].copy()).to(device))
 
 
 def held_out_phases(store: TrajectoryStore, train_cfg: TrainConfig) -> tuple[list[Phase], str]:
@@ -125,4 +122,4 @@ class CaseReader:
             raise ValueError(f"{self.store.path}: episode {phase.episode}: {a['x'].shape[1]} rows of x, "
                              f"{areas.shape[0]} vertex areas of {phase.layout[0]}")
         return Case(phase, str(self.store.episode_attrs(phase.episode)["task"]), self.layout(phase.layout), scene,
-                    a["x"], a["v"], a["poses"], link_poses, areas[cloth].astype(np.float64))
+                    a["x"], a["v"], a["action"], a["poses"], link_poses, areas[cloth].astype(np.float64))

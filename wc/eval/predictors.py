@@ -1,18 +1,16 @@
-"""Everything `evaluate` compares, behind one tiny interface.
+"""The learned predictors `evaluate` compares (and expand rolls out), behind one tiny tensor interface.
 
-A `Predictor` advances the object state of one scene layout under recorded prescribed inputs:
+A `Predictor` advances the object state of one scene layout under prescribed body poses:
 
     x, v = predictor.rollout(layout, x0, v0, poses, dt)
     layout: wc.model.layout.SceneLayout (objects, rest topology, prescribed sample sets)
     x0, v0: (B, N, 3) torch tensors, m and m/s;  poses: (B, T, P, 7) body poses of frames 0..T-1
     returns x, v: (B, T-1, N, 3), frames 1..T-1 (non-finite values are allowed: a diverged rollout)
 
-The baselines (wc.baselines.load_baseline(path)) follow the same shape. Implemented here: zero motion,
-constant velocity and WorldContact from a checkpoint directory.
-
-A `CasePredictor` needs more of a case than the model inputs: the Newton simulator (wc.eval.newton_predictor)
-re-simulates the case in its collision scene under its commanded actions; `prepare` (untimed) builds and
-warms it up, `rollout_case` is what the speed-accuracy chart times.
+A predictor that reads past frames beyond the current state says how many in `history` (the particle baselines'
+n_his; default 1). The baselines (wc.baselines.load_baseline(path)) follow the same shape. Implemented here: zero
+motion, constant velocity and WorldContact from a checkpoint directory. Every one of them is rolled out as
+`wc.dynamics.Dynamics` through wc.model.learned_dynamics.LearnedDynamics (evaluate: wc.eval.methods).
 """
 
 from __future__ import annotations
@@ -20,22 +18,17 @@ from __future__ import annotations
 import dataclasses
 from contextlib import nullcontext
 from pathlib import Path
-from typing import Protocol, runtime_checkable
+from typing import Protocol
 
-import numpy as np
 import torch
 
-from wc.eval.cases import Case
 from wc.eval.config import WORLDCONTACT_KEYS, MethodSpec
-from wc.eval.newton_predictor import NewtonPredictor
 from wc.model.layout import SceneLayout
 from wc.model.fixed_neighbors import capacities_from_dict
 from wc.model.padded_neighbors import NeighborCapacity
 from wc.model.rollout import rollout
 from wc.model.static_rollout import StaticRollout
 from wc.model.worldcontact import WorldContact
-from wc.scene.config import SceneConfig
-from wc.sim.config import SimConfig
 from wc.train.capacity import initial_capacities
 from wc.train.checkpoint import load_model
 from wc.train.config import TrainConfig
@@ -47,17 +40,6 @@ class Predictor(Protocol):
     def rollout(self, layout: SceneLayout, x0: torch.Tensor, v0: torch.Tensor, poses: torch.Tensor,
                 dt: float) -> tuple[torch.Tensor, torch.Tensor]:
         """Predicted x, v (B, T-1, N, 3) for frames 1..T-1 from x0, v0 (B, N, 3) under poses (B, T, P, 7)."""
-        ...
-
-
-@runtime_checkable
-class CasePredictor(Protocol):
-    def prepare(self, case: Case, actions: np.ndarray) -> None:
-        """Everything before the timed rollout (building, compiling, one warm-up); actions (T, 14)."""
-        ...
-
-    def rollout_case(self, case: Case, actions: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
-        """Predicted x, v (T-1, N, 3) for the case's frames 1..T-1 under its actions (T, 14)."""
         ...
 
 
@@ -152,16 +134,12 @@ class WorldContactPredictor:
         return xs, vs
 
 
-def load_predictor(spec: MethodSpec, train_cfg: TrainConfig, device: torch.device,
-                   scene_cfg: SceneConfig | None = None, sim_cfg: SimConfig | None = None
-                   ) -> Predictor | CasePredictor:
-    """The predictor a params method entry names (kind newton needs the params `scene` and `sim` configs).
+def load_predictor(spec: MethodSpec, train_cfg: TrainConfig, device: torch.device) -> Predictor:
+    """The learned predictor or reference a params method entry names (not kind newton: wc.eval.methods).
     FileNotFoundError when its checkpoint directory is absent (the stage skips such methods with a note);
     ImportError when no baseline package is installed."""
     if spec.kind == "newton":
-        if scene_cfg is None or sim_cfg is None:
-            raise ValueError("a method of kind 'newton' needs the params `scene` and `sim` sections")
-        return NewtonPredictor(spec, scene_cfg, sim_cfg, device)
+        raise ValueError("a method of kind 'newton' is the simulator, not a predictor: wc.eval.methods.load_method")
     if spec.kind == "zero_motion":
         return ZeroMotion()
     if spec.kind == "constant_velocity":

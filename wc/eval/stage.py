@@ -7,7 +7,8 @@ Every phase (wc.train.data.episode_phases) is rolled out autoregressively from i
 recorded prescribed inputs for min(rollout_frames, phase length - 1) steps. Long rollouts take, per task,
 the longest phases (test split, else every episode) for min(stability_frames, phase length - 1) steps.
 
-Methods come from params `evaluate.methods`; a checkpoint directory that does not exist is skipped and
+Methods come from params `evaluate.methods` (wc.eval.methods: each one is rolled out as `wc.dynamics.Dynamics`
+over a case's scene and recorded inputs); a checkpoint directory that does not exist is skipped and
 listed under `skipped` in the report. "ground_truth" (the recorded frames) is scored beside them as the
 penetration and strain floor of the data itself.
 
@@ -39,7 +40,9 @@ from wc.eval.config import EvaluateConfig, MethodSpec
 from wc.eval.metrics import ErrorTally, finite_or_none, squared_error
 from wc.eval.penetration import PenetrationTally, cloth_signed_distance, penetrating_area_pct
 from wc.eval.plots import SPEED_ACCURACY_HEADER, plot_speed_accuracy, plot_stability, speed_accuracy_rows
-from wc.eval.predictors import CasePredictor, Predictor, WorldContactPredictor, load_predictor
+from wc.eval.methods import LearnedMethod, Method, load_method, predict
+from wc.eval.newton_method import NewtonMethod
+from wc.eval.predictors import WorldContactPredictor
 from wc.eval.stability import (CSV_HEADER, StabilityCurve, csv_rows, divergence_summary, first_divergence,
                               max_edge_strain)
 from wc.model.config import ModelConfig
@@ -52,57 +55,30 @@ from wc.train.data import Phase
 
 SECTIONS = ["evaluate", "scene", "model", "train", "sim"]
 GROUND_TRUTH = "ground_truth"
-AnyPredictor = Predictor | CasePredictor
 
 
 def load_methods(cfg: EvaluateConfig, train_cfg: TrainConfig, tag_scale: float, device: torch.device,
                  scene_cfg: SceneConfig | None = None, sim_cfg: SimConfig | None = None
-                 ) -> tuple[dict[str, AnyPredictor], dict[str, str]]:
-    """(predictors by name, skipped methods with the reason): absent checkpoint directories are skipped."""
-    predictors, skipped = {}, {}
+                 ) -> tuple[dict[str, Method], dict[str, str]]:
+    """(methods by name, skipped methods with the reason): absent checkpoint directories are skipped."""
+    methods, skipped = {}, {}
     for name, spec in cfg.methods.items():
         if name == GROUND_TRUTH:
             raise ParamsError(f"evaluate.methods.{name}: the name {GROUND_TRUTH!r} is reserved for the recorded data")
         try:
-            predictor = load_predictor(spec, train_cfg, device, scene_cfg, sim_cfg)
+            method = load_method(spec, train_cfg, device, scene_cfg, sim_cfg)
         except FileNotFoundError as err:
             skipped[name] = str(err)
             continue
         except ImportError as err:
             skipped[name] = f"baseline code not importable: {err}"
             continue
+        predictor = method.predictor if isinstance(method, LearnedMethod) else None
         if isinstance(predictor, WorldContactPredictor) and predictor.tag_scale != tag_scale:
             raise ValueError(f"evaluate.methods.{name}: checkpoint tag_scale {predictor.tag_scale} differs from "
                              f"params model.tag_scale {tag_scale}; layouts are built with the params value")
-        predictors[name] = predictor
-    return predictors, skipped
-
-
-def case_actions(store: TrajectoryStore, case: Case) -> np.ndarray:
-    """The commanded actions (T, 14) of a case's frames."""
-    return store.read_window(case.phase.episode, case.phase.start, len(case.x), ("action",))["action"]
-
-
-def predict(predictor: AnyPredictor, case: Case, dt: float, device: torch.device,
-            actions: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Predicted x, v (S, N, 3) for frames 1..S of a case (float64 numpy; NaN after a raised FloatingPointError);
-    a CasePredictor also takes the case's actions (T, 14)."""
-    shape = (1, case.steps, *case.x.shape[1:])
-    try:
-        if isinstance(predictor, CasePredictor):
-            if actions is None:
-                raise ValueError(f"{type(predictor).__name__} needs the case's actions")
-            x, v = (torch.as_tensor(a)[None] for a in predictor.rollout_case(case, actions, dt))
-        else:
-            x0, v0, poses = case.inputs(device)
-            x, v = predictor.rollout(case.layout, x0, v0, poses, dt)
-    except FloatingPointError:
-        return np.full(shape[1:], np.nan), np.full(shape[1:], np.nan)
-    x, v = torch.as_tensor(x), torch.as_tensor(v)  # a baseline may answer in numpy
-    if tuple(x.shape) != shape or tuple(v.shape) != shape:
-        raise ValueError(f"{type(predictor).__name__}.rollout returned x {tuple(x.shape)}, v {tuple(v.shape)}; "
-                         f"expected {shape}")
-    return x[0].detach().double().cpu().numpy(), v[0].detach().double().cpu().numpy()
+        methods[name] = method
+    return methods, skipped
 
 
 @dataclass
@@ -167,7 +143,7 @@ def chart_phases(store: TrajectoryStore, phases: list[Phase], max_cases: int | N
 
 @dataclass
 class HeldOut:
-    """Held-out scores: `scores` over every rollout (not the case predictors), `chart` over the chart's
+    """Held-out scores: `scores` over every rollout (not the Newton methods), `chart` over the chart's
     rollouts (every method), and the rollouts made (`rolled`, `charted`)."""
 
     scores: dict[str, MethodScores]
@@ -176,19 +152,18 @@ class HeldOut:
     charted: list[dict[str, Any]]
 
 
-def held_out_scores(reader: CaseReader, phases: list[Phase], predictors: dict[str, AnyPredictor],
+def held_out_scores(reader: CaseReader, phases: list[Phase], methods: dict[str, Method],
                     cfg: EvaluateConfig, dt: float) -> HeldOut:
     """Scores of the recorded data and every method over rollouts of up to rollout_frames steps from each
-    phase's first frame; case predictors (Newton) roll out the chart's phases only."""
+    phase's first frame; the Newton methods roll out the chart's phases only."""
     band = cfg.contact_band_m
 
     def tallies(names: list[str]) -> dict[str, MethodScores]:
         return {m: MethodScores(ErrorTally(cfg.rollout_frames), cfg.penetration_depth_m, band) for m in names}
 
     on_chart = set(chart_phases(reader.store, phases, cfg.chart_max_cases))
-    by_case = {n: isinstance(p, CasePredictor) for n, p in predictors.items()}
-    out = HeldOut(tallies([GROUND_TRUTH, *(n for n in predictors if not by_case[n])]), tallies(list(predictors)),
-                  [], [])
+    newton = {n: isinstance(m, NewtonMethod) for n, m in methods.items()}
+    out = HeldOut(tallies([GROUND_TRUTH, *(n for n in methods if not newton[n])]), tallies(list(methods)), [], [])
     warmed: set[str] = set()
     for phase in tqdm(phases, desc="evaluate held-out", unit="rollout"):
         if phase.stop - phase.start < 2:
@@ -202,38 +177,36 @@ def held_out_scores(reader: CaseReader, phases: list[Phase], predictors: dict[st
         truth_x, truth_v = case.x[1:].astype(np.float64), case.v[1:].astype(np.float64)
         out.scores[GROUND_TRUTH].add(case, truth_x, truth_v,
                                      cloth_signed_distance(case.scene, truth_x, case.link_poses[1:], band))
-        actions = case_actions(reader.store, case) if charted and any(by_case.values()) else None
-        for name, predictor in predictors.items():
-            if by_case[name]:
-                if not charted:
-                    continue
-                predictor.prepare(case, actions)  # build, compile, warm up: not timed
-            elif charted and name not in warmed:  # the first charted rollout once untimed: compile, graph capture
-                predict(predictor, case, dt, reader.device, actions)
+        for name, method in methods.items():
+            if newton[name] and not charted:
+                continue
+            dynamics = method.dynamics(case, dt)  # Newton: built, compiled, warmed up on first use; not timed
+            if charted and not newton[name] and name not in warmed:  # the first charted rollout once untimed:
+                predict(dynamics, case)  # compilation, graph capture
                 warmed.add(name)
             t0 = time.perf_counter()
-            x, v = predict(predictor, case, dt, reader.device, actions)
+            x, v = predict(dynamics, case)
             seconds = time.perf_counter() - t0
             signed_distance = cloth_signed_distance(case.scene, x, case.link_poses[1:], band)
-            for table in ([out.chart] if charted else []) + ([] if by_case[name] else [out.scores]):
+            for table in ([out.chart] if charted else []) + ([] if newton[name] else [out.scores]):
                 table[name].seconds += seconds
                 table[name].steps += case.steps
                 table[name].add(case, x, v, signed_distance)
     return out
 
 
-def stability_curves(reader: CaseReader, phases: list[Phase], predictors: dict[str, AnyPredictor],
+def stability_curves(reader: CaseReader, phases: list[Phase], methods: dict[str, Method],
                      cfg: EvaluateConfig, dt: float) -> list[StabilityCurve]:
-    """Curves of the recorded data and every method (not the case predictors: Newton is the data's own
+    """Curves of the recorded data and every method (not the Newton methods: Newton is the data's own
     simulator) over rollouts of up to stability_frames steps."""
-    predictors = {n: p for n, p in predictors.items() if not isinstance(p, CasePredictor)}
+    methods = {n: m for n, m in methods.items() if not isinstance(m, NewtonMethod)}
     curves = []
     for phase in tqdm(phases, desc="evaluate stability", unit="rollout"):
         if phase.stop - phase.start < 2:
             continue
         case = reader.case(phase, cfg.stability_frames + 1)
-        for name, predictor in [(GROUND_TRUTH, None), *predictors.items()]:
-            x = case.x[1:].astype(np.float64) if predictor is None else predict(predictor, case, dt, reader.device)[0]
+        for name, method in [(GROUND_TRUTH, None), *methods.items()]:
+            x = case.x[1:].astype(np.float64) if method is None else predict(method.dynamics(case, dt), case)[0]
             sd = cloth_signed_distance(case.scene, x, case.link_poses[1:], cfg.contact_band_m)
             curves.append(stability_curve(name, case, x, sd, cfg))
     return curves
@@ -264,15 +237,15 @@ def evaluate(params: dict[str, Any], store_path: str | Path = EVALUATE["store"],
     device = resolve_device(cfg.device, "evaluate.device")
     store = TrajectoryStore(store_path)
     dt = float(store.dt)
-    predictors, skipped = load_methods(cfg, train_cfg, model_cfg.tag_scale, device, scene_cfg, sim_cfg)
+    methods, skipped = load_methods(cfg, train_cfg, model_cfg.tag_scale, device, scene_cfg, sim_cfg)
     reader = CaseReader(store, scene_cfg, model_cfg.tag_scale, device)
 
     held, held_source = held_out_phases(store, train_cfg)
     if not held:
         raise ValueError(f"evaluate: {store_path} has no held-out phase to roll out ({held_source})")
-    held_out = held_out_scores(reader, held, predictors, cfg, dt)
+    held_out = held_out_scores(reader, held, methods, cfg, dt)
     long, long_source = long_phases(store, cfg.stability_per_task)
-    curves = stability_curves(reader, long, predictors, cfg, dt)
+    curves = stability_curves(reader, long, methods, cfg, dt)
 
     write_csv_atomic(stability_csv, CSV_HEADER, csv_rows(curves, dt))
     plot_stability(curves, stability_png, dt, cfg.divergence_strain, cfg.divergence_penetration_pct)
@@ -299,7 +272,7 @@ def evaluate(params: dict[str, Any], store_path: str | Path = EVALUATE["store"],
                                      "penetration_pct": cfg.divergence_penetration_pct},
                       "methods": stability},
         "penetration": {"depth_m": cfg.penetration_depth_m, "contact_band_m": cfg.contact_band_m},
-        "kinds": {m: spec.kind for m, spec in cfg.methods.items() if m in predictors},
+        "kinds": {m: spec.kind for m, spec in cfg.methods.items() if m in methods},
         "dt": dt,
         "store": str(store_path),
         "params_hash": params_hash(params, SECTIONS),

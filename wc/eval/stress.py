@@ -4,8 +4,8 @@ ground truth -> reports/stress.csv, reports/stress.png, reports/stress_curves.cs
 side-by-side video of one case (wc.eval.video).
 
 Ground truth: wc.eval.stress_truth (data/stress/trajectories.zarr, reused while its params hash matches).
-Rollouts: each episode from frame 0 for min(stress.rollout_frames, frames - 1) steps under the recorded
-prescribed inputs. A hand-off episode is one rollout across its release: the first phase is rolled out to
+Rollouts: each episode from frame 0 for min(stress.rollout_frames, frames - 1) steps, every method as
+`wc.dynamics.Dynamics` of each phase's case (wc.eval.methods) under the recorded actions and prescribed inputs. A hand-off episode is one rollout across its release: the first phase is rolled out to
 the release frame, and the second starts from the predicted state of the objects that stay predicted plus
 the recorded state of the released object (which until then followed its gripper, a prescribed pose).
 Scores per case and method, pooled over the case's episodes: position and velocity MSE (wc.eval.metrics),
@@ -32,9 +32,10 @@ from wc.eval.cases import Case, CaseReader
 from wc.eval.config import EvaluateConfig
 from wc.eval.metrics import ErrorTally, finite_or_none
 from wc.eval.penetration import PenetrationTally, cloth_signed_distance
-from wc.eval.predictors import CasePredictor, Predictor
+from wc.eval.methods import Method, predict
+from wc.eval.newton_method import NewtonMethod
 from wc.eval.stability import CSV_HEADER, StabilityCurve, csv_rows
-from wc.eval.stage import GROUND_TRUTH, load_methods, predict, stability_curve
+from wc.eval.stage import GROUND_TRUTH, load_methods, stability_curve
 from wc.eval.stress_config import StressConfig
 from wc.eval.stress_truth import ground_truth
 from wc.eval.video import side_by_side_video
@@ -86,8 +87,9 @@ def _carried_start(store: TrajectoryStore, case: Case, previous: Rollout) -> Cas
     return dataclasses.replace(case, x=x, v=v)
 
 
-def episode_rollout(reader: CaseReader, eid: str, steps: int, predictor: Predictor | None, dt: float) -> Rollout:
-    """One rollout of `steps` steps from frame 0 across the episode's phases (predictor None: the recording)."""
+def episode_rollout(reader: CaseReader, eid: str, steps: int, method: Method | None, dt: float) -> Rollout:
+    """One rollout of `steps` steps from frame 0 across the episode's phases, each phase the method as Dynamics of
+    its case (method None: the recording)."""
     store = reader.store
     out = Rollout(eid, [])
     for phase in episode_phases(store, eid):
@@ -95,7 +97,7 @@ def episode_rollout(reader: CaseReader, eid: str, steps: int, predictor: Predict
         if left < 1 or phase.stop - phase.start < 2:
             break
         case = reader.case(phase, left + 1)
-        if predictor is None:
+        if method is None:
             out.phases.append((case, case.x[1:].astype(np.float64), case.v[1:].astype(np.float64)))
             continue
         if out.phases:
@@ -104,7 +106,7 @@ def episode_rollout(reader: CaseReader, eid: str, steps: int, predictor: Predict
             nan = np.full((case.steps, *case.x.shape[1:]), np.nan)
             out.phases.append((case, nan, nan.copy()))
             continue
-        x, v = predict(predictor, case, dt, reader.device)
+        x, v = predict(method.dynamics(case, dt), case)
         out.phases.append((case, x, v))
     return out
 
@@ -156,7 +158,7 @@ def _first_divergence(parts: list[StabilityCurve]) -> int | None:
 
 
 def case_scores(reader: CaseReader, cfg: StressConfig, eval_cfg: EvaluateConfig,
-                predictors: dict[str, Predictor], dt: float
+                methods: dict[str, Method], dt: float
                 ) -> tuple[dict[str, dict[str, CaseScores]], dict[tuple[str, str], Rollout]]:
     """Scores by case and method (ground truth first) and every rollout by (episode, method)."""
     store = reader.store
@@ -166,12 +168,12 @@ def case_scores(reader: CaseReader, cfg: StressConfig, eval_cfg: EvaluateConfig,
     for name, eid in tqdm(episodes, desc="stress rollouts", unit="episode"):
         steps = min(cfg.rollout_frames, store.num_frames(eid) - 1)
         by_method = scores.setdefault(name, {})
-        for method, predictor in [(GROUND_TRUTH, None), *predictors.items()]:
-            rollout = episode_rollout(reader, eid, steps, predictor, dt)
-            tally = by_method.setdefault(method, CaseScores(ErrorTally(cfg.rollout_frames), PenetrationTally(
+        for label, method in [(GROUND_TRUTH, None), *methods.items()]:
+            rollout = episode_rollout(reader, eid, steps, method, dt)
+            tally = by_method.setdefault(label, CaseScores(ErrorTally(cfg.rollout_frames), PenetrationTally(
                 eval_cfg.penetration_depth_m, eval_cfg.contact_band_m)))
-            tally.add(method, name, rollout, eval_cfg)
-            rollouts[(eid, method)] = rollout
+            tally.add(label, name, rollout, eval_cfg)
+            rollouts[(eid, label)] = rollout
     return scores, rollouts
 
 
@@ -248,26 +250,26 @@ def stress(params: dict[str, Any], store: str | Path = STRESS["store"], csv: str
     started = time.perf_counter()
     torch.manual_seed(cfg.seed)
     device = resolve_device(cfg.device, "stress.device")
-    predictors, skipped = load_methods(eval_cfg, train_cfg, model_cfg.tag_scale, device, scene_cfg,
-                                       load_section(params, "sim", SimConfig))
+    methods, skipped = load_methods(eval_cfg, train_cfg, model_cfg.tag_scale, device, scene_cfg,
+                                    load_section(params, "sim", SimConfig))
     unknown = sorted(set(cfg.methods or ()) - set(eval_cfg.methods))
     if unknown:
         raise ValueError(f"stress.methods {unknown} are not evaluate.methods entries {sorted(eval_cfg.methods)}")
-    for name in [n for n in predictors if cfg.methods is not None and n not in cfg.methods]:
-        del predictors[name]
+    for name in [n for n in methods if cfg.methods is not None and n not in cfg.methods]:
+        del methods[name]
         skipped[name] = "not in stress.methods"
-    for name in [n for n, p in predictors.items() if isinstance(p, CasePredictor)]:  # as evaluate's long rollouts
-        del predictors[name]
+    for name in [n for n, m in methods.items() if isinstance(m, NewtonMethod)]:  # as evaluate's long rollouts
+        del methods[name]
         skipped[name] = "a Newton setting: not rolled out (the stress ground truth is Newton, with per-case overrides)"
-    missing = [m for m in (cfg.video.method,) if m not in predictors]
+    missing = [m for m in (cfg.video.method,) if m not in methods]
     if missing:
         raise ValueError(f"stress.video.method {cfg.video.method!r} is not an available evaluate method "
-                         f"(available: {sorted(predictors)}; skipped: {sorted(skipped)})")
+                         f"(available: {sorted(methods)}; skipped: {sorted(skipped)})")
     truth_store, truth = ground_truth(params, cfg, store)
     simulated = time.perf_counter()
     dt = float(truth_store.dt)
     reader = CaseReader(truth_store, scene_cfg, model_cfg.tag_scale, device)
-    scores, rollouts = case_scores(reader, cfg, eval_cfg, predictors, dt)
+    scores, rollouts = case_scores(reader, cfg, eval_cfg, methods, dt)
     tasks = {n: cfg.case_task(n) for n in cfg.cases}
     rows = table_rows(scores, tasks)
     write_csv_atomic(csv, STRESS_HEADER, [["" if r[k] is None else r[k] for k in STRESS_HEADER] for r in rows])

@@ -1,5 +1,6 @@
 """Batched world-model rollouts of planned episodes: the predictor, as `Dynamics` (wc.model.learned_dynamics), steps
-every episode of the batch together from its frame-0 state under its commanded actions."""
+every episode of the batch together from its frame-0 state under its commanded actions (the robot's poses from the
+scene's forward kinematics, KinematicInputs)."""
 
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ from wc.eval.predictors import Predictor
 from wc.expand.plan import PlannedEpisode
 from wc.model.layout import SceneLayout
 from wc.model.learned_dynamics import LearnedDynamics
+from wc.model.prescribed_inputs import KinematicInputs
 from wc.scene.scene import Scene
 
 
@@ -31,9 +33,11 @@ def rollout_batch(predictor: Predictor, layout: SceneLayout, scene: Scene, plann
                   dt: float, device: torch.device) -> list[Rollout]:
     """Roll out planned episodes together (wc.model.learned_dynamics: the predictor as `Dynamics`); shorter action
     sequences hold their last action (as the simulator agent pads a batch) until the longest ends."""
-    dynamics = LearnedDynamics(predictor, layout, scene, dt, device)
+    dynamics = LearnedDynamics(predictor, layout, KinematicInputs(scene), dt, device)
     length = max(len(p.actions) for p in planned)
     actions = np.stack([pad_to_length(p.actions, length) for p in planned]).astype(np.float32)  # (B, T, 14)
     x0 = np.stack([p.x0 for p in planned]).astype(np.float32)
-    x, v, links, env = dynamics.rollout_arrays(x0, np.zeros_like(x0), actions)
-    return [Rollout(x[b], v[b], actions[b], links[b], env[b]) for b in range(len(planned))]
+    x, v, poses = dynamics.rollout_arrays(x0, np.zeros_like(x0), actions)
+    links, env = np.split(poses, [len(scene.link_names)], axis=2)
+    return [Rollout(x[b], v[b], actions[b], np.ascontiguousarray(links[b]), np.ascontiguousarray(env[b]))
+            for b in range(len(planned))]

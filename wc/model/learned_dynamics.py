@@ -1,9 +1,9 @@
 """A learned predictor as `wc.dynamics.Dynamics`: the call the Newton simulator answers (frame-0 object states and
 14-D commanded actions in, (x, v) per frame out), for WorldContact, a baseline or a reference alike.
 
-The predictors (wc.eval.predictors.Predictor) step tensors under prescribed body poses; this turns the actions into
-those poses (the scene's forward kinematics for the robot links, the environment bodies where they stand) and keeps
-a batch going past an episode that diverges (`finite_rollout`).
+The predictors (wc.eval.predictors.Predictor) step tensors under prescribed body poses; `PrescribedInputs`
+(wc.model.prescribed_inputs) turns the actions into those poses: the scene's forward kinematics (expand) or an
+episode's recorded poses (evaluate, stress). A batch goes on past an episode that diverges (`finite_rollout`).
 """
 
 from __future__ import annotations
@@ -13,9 +13,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
-from wc.dynamics import ObjectState
+from wc.dynamics import ObjectState, SteppedEpisode, as_command, finite_state, stepped
 from wc.model.layout import SceneLayout
-from wc.scene.scene import Scene
+from wc.model.prescribed_inputs import PrescribedInputs
 
 if TYPE_CHECKING:
     from wc.eval.predictors import Predictor
@@ -50,32 +50,30 @@ def finite_rollout(predictor: Predictor, layout: SceneLayout, x0: np.ndarray, v0
 
 
 class LearnedDynamics:
-    """`Dynamics` of a predictor over one scene: layout.bodies must be the scene's links, then its environment."""
+    """`Dynamics` of a predictor over one layout, under prescribed inputs of the layout's bodies.
 
-    def __init__(self, predictor: Predictor, layout: SceneLayout, scene: Scene, dt: float,
+    `step` gives a predictor the state and the poses of the frame and the next: a predictor that reads more past
+    frames (a `history` attribute > 1, as the particle baselines have) is replayed from the state its episode
+    (re)started from, so that stepping gives `rollout`'s frames; each step then costs a rollout of the frames so far.
+    """
+
+    def __init__(self, predictor: Predictor, layout: SceneLayout, inputs: PrescribedInputs, dt: float,
                  device: torch.device) -> None:
-        if tuple(layout.bodies) != (*scene.link_names, *scene.env_names):
-            raise ValueError(f"layout bodies {layout.bodies} are not the scene's links then environment "
-                             f"{(*scene.link_names, *scene.env_names)}")
-        self.predictor, self.layout, self.scene, self.dt, self.device = predictor, layout, scene, dt, device
+        if tuple(layout.bodies) != tuple(inputs.bodies):
+            raise ValueError(f"layout bodies {layout.bodies} are not the prescribed inputs' bodies {inputs.bodies}")
+        self.predictor, self.layout, self.inputs, self.dt, self.device = predictor, layout, inputs, dt, device
+        self._episode: SteppedEpisode | None = None
 
-    def body_poses(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Link poses (B, T, L, 7) and environment poses (B, T, E, 7) under actions (B, T, 14)."""
-        links, env = self.scene.link_poses(actions), self.scene.env_poses()
-        env = np.broadcast_to(env, (*links.shape[:2], *env.shape))
-        return links, np.ascontiguousarray(env)
-
-    def rollout_arrays(self, x0: np.ndarray, v0: np.ndarray, actions: np.ndarray
-                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """x, v (B, T, N, 3) (frame 0 = x0, v0; NaN from where an episode diverged) and the link and environment
-        poses of actions (B, T, 14)."""
+    def rollout_arrays(self, x0: np.ndarray, v0: np.ndarray, actions: np.ndarray, first: int = 0
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """x, v (B, T, N, 3) (frame 0 = x0, v0; NaN from where an episode diverged) and the body poses (B, T, P, 7)
+        of actions (B, T, 14) at frames first..first+T-1."""
         actions = np.asarray(actions, np.float32)
         if actions.ndim != 3 or actions.shape[-1] != 14 or actions.shape[0] != len(x0):
             raise ValueError(f"actions must be (B, T, 14) for {len(x0)} states, got {actions.shape}")
-        links, env = self.body_poses(actions)
-        x, v = finite_rollout(self.predictor, self.layout, x0, v0, np.concatenate([links, env], axis=2), self.dt,
-                              self.device)
-        return x, v, links, env
+        poses = self.inputs.poses(actions, first)
+        x, v = finite_rollout(self.predictor, self.layout, x0, v0, poses, self.dt, self.device)
+        return x, v, poses
 
     def rollout_batch(self, initial: list[ObjectState], actions: list[np.ndarray]) -> list[tuple[np.ndarray, np.ndarray]]:
         """As NewtonSimulator.rollout_batch: episodes of equal length, [(x, v) of (T, N, 3)], not checked finite."""
@@ -85,9 +83,28 @@ class LearnedDynamics:
                              f"and lengths {sorted(lengths)}")
         x0 = np.stack([s.x for s in initial]).astype(np.float32)
         v0 = np.stack([s.v for s in initial]).astype(np.float32)
-        x, v, _, _ = self.rollout_arrays(x0, v0, np.stack(actions))
+        x, v, _ = self.rollout_arrays(x0, v0, np.stack(actions))
         return [(x[b], v[b]) for b in range(len(initial))]
 
     def rollout(self, initial: ObjectState, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """One episode: (x, v) each (T, N, 3), frame 0 = `initial`."""
         return self.rollout_batch([initial], [actions])[0]
+
+    def start(self, initial: ObjectState, action: np.ndarray) -> None:
+        """Frame 0 of a stepped episode: the object state and the robot's command (14,)."""
+        self._episode = SteppedEpisode(initial, [as_command(action)])
+
+    def step(self, state: ObjectState, action: np.ndarray) -> ObjectState:
+        """The object state one frame after `state` under the poses of the current command and `action` (14,)."""
+        nxt = as_command(action)
+        episode = stepped(self._episode, state)
+        self._episode = None  # until the step is known finite: after a FloatingPointError, start again
+        actions = [*episode.actions, nxt]
+        replay = getattr(self.predictor, "history", 1) > 1  # a model of past frames: replay from where they start
+        origin, first = (episode.origin, episode.first) if replay else (state, episode.frame)
+        window = np.stack(actions if replay else actions[-2:])[None]
+        x, v, _ = self.rollout_arrays(origin.x[None], origin.v[None], window, first)
+        out = finite_state(x[0, -1], v[0, -1], episode.frame + 1)
+        episode.actions.append(nxt)
+        self._episode, episode.last = episode, out
+        return out

@@ -2,7 +2,9 @@
 
 One Newton world per episode; `worlds > 1` simulates several episodes at once (GPU throughput).
 Robot links are kinematic root bodies whose poses come from our batched FK of the commanded
-action, interpolated per substep so contact sees the right link velocities.
+action, interpolated per substep so contact sees the right link velocities. `NewtonSimulator` is a
+`wc.dynamics.Dynamics` (rollout, rollout_batch, start / step); its per-frame API (set_state,
+advance_frame, read_state) is what those are made of.
 """
 
 from __future__ import annotations
@@ -14,7 +16,7 @@ import warp as wp
 
 import newton
 from wc.devices import resolve_warp_device
-from wc.dynamics import ObjectState
+from wc.dynamics import ObjectState, SteppedEpisode, as_command, finite_state, stepped
 from wc.scene.scene import Scene
 from wc.sim.config import SimConfig
 from wc.rotations import quat_rotate
@@ -81,6 +83,8 @@ class NewtonSimulator:
         self._kin_twists = wp.zeros(shape, dtype=wp.spatial_vector, device=self.device)
         self._graph = None
         self.solver_steps = 0
+        self._episode: SteppedEpisode | None = None  # of start / step
+        self._x: np.ndarray | None = None  # (N, 3) world 0's positions at the episode's last frame, as simulated
 
     @staticmethod
     def device_name(cfg: SimConfig) -> str:
@@ -135,7 +139,8 @@ class NewtonSimulator:
 
     def set_state(self, states: list[ObjectState], action: np.ndarray) -> None:
         """Set particles, rigid bodies and robot links of every world (frame-0 inputs: one state and action (14,)
-        per world, the last repeated for the rest) and forget the solver's history."""
+        per world, the last repeated for the rest) and forget the solver's history (and any stepped episode)."""
+        self._episode = None
         q = np.zeros((self.worlds, self.particles_per_world, 3), np.float32)
         qd = np.zeros_like(q)
         body_q = self.state_0.body_q.numpy().reshape(self.worlds, self.bodies_per_world, 7)
@@ -277,3 +282,29 @@ class NewtonSimulator:
     def rollout(self, initial: ObjectState, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """One episode: (x, v) each (T, N, 3), frame 0 = `initial`."""
         return self.rollout_batch([initial], [actions])[0]
+
+    def start(self, initial: ObjectState, action: np.ndarray) -> None:
+        """Frame 0 of a stepped episode (every world runs it, world 0 is read): the object state and the robot's
+        command (14,); forgets the solver's history."""
+        self._restart(SteppedEpisode(initial, [as_command(action)]))
+
+    def _restart(self, episode: SteppedEpisode) -> None:
+        self.set_state([episode.origin], episode.action[None])
+        self._episode, self._x = episode, self.read_state()[0][0]
+
+    def step(self, state: ObjectState, action: np.ndarray) -> ObjectState:
+        """The object state one frame (substeps solver steps) after `state` as the robot moves from the current
+        command to `action` (14,); v is the frame-mean velocity, as `rollout_batch` records it. The solver's history
+        goes on when `state` is the one the last start / step gave, else `state` is written in first (as `start`)."""
+        nxt = as_command(action)
+        episode = stepped(self._episode, state)
+        if episode is not self._episode:
+            self._restart(episode)
+        now = episode.action
+        self.advance_frame(np.repeat(now[None], self.worlds, 0), np.repeat(nxt[None], self.worlds, 0))
+        x = self.read_state()[0][0]
+        self._episode = None  # until the step is known finite: after a FloatingPointError, start again
+        out = finite_state(x, (x - self._x) / self.cfg.frame_dt_s, episode.frame + 1)
+        episode.actions.append(nxt)
+        self._episode, episode.last, self._x = episode, out, x
+        return out
