@@ -9,10 +9,12 @@ The work is `wc.expand.stage.expand` (importable, used by the tests); see it for
 
 from wc.expand.stage import expand, expand_summary
 from wc.paths import EXPAND
+from wc.distributed import UnitsFailed
 from wc.stage_cli import StageCommand
 
 COMMAND = StageCommand(
     "expand", __doc__, expand, expand_summary, EXPAND, keywords={"model": "model_dir"}, optional=("rejected_out",),
+    expected=(UnitsFailed,),
     helps={"model": "checkpoint dir (model.safetensors + .json)",
            "rejected_out": "store of the rejected generated episodes, for the teacher check ('' to not keep them)"})
 main = COMMAND.main

@@ -7,7 +7,7 @@ a few seconds on a 2-core CPU carry the `slow` marker (pyproject.toml); `pytest 
 from __future__ import annotations
 
 import copy
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -50,3 +50,14 @@ def synthetic_store(tmp_path_factory: pytest.TempPathFactory) -> SyntheticStore:
         return write_synthetic_store(tmp_path_factory.mktemp("store") / "s.zarr", params, list(episodes), frames, seed)
 
     return write
+
+
+@pytest.fixture(scope="session")
+def local_ray() -> Iterator[None]:
+    """A Ray instance on this machine with two CPUs (two workers at once) for the ray executor's tests, which the
+    stages use as it is (wc.distributed.open_executor); shut down after the last test."""
+    import ray
+
+    ray.init(num_cpus=2, include_dashboard=False, runtime_env={"env_vars": {"PYTHONPATH": str(ROOT)}})
+    yield
+    ray.shutdown()

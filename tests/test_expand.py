@@ -17,66 +17,36 @@ import yaml
 
 from stages.expand import main
 from tests.conftest import load_params
+from tests.expand_inputs import TASK, expand_params, write_source_store, write_tiny_model
 from tests.synthetic_store import write_synthetic_store
 from wc.config import ParamsError, load_section
-from wc.data.store import TrajectoryStore, copy_store
+from wc.data.store import TrajectoryStore
 from wc.dynamics import ObjectState
 from wc.expand import (ExpandConfig, NoSourceEpisodesError, SourceEpisode, check_clear_at_start, check_on_table,
                        expand, pick_parent, plan_episode, planar_transform, presettle_state)
-from wc.model.config import ModelConfig
 from wc.model.learned_dynamics import finite_rollout
 from wc.model.projection import edges_from_faces
-from wc.model.worldcontact import WorldContact
 from wc.scene.config import SceneConfig
 from wc.scene.scene import build_scene
 from wc.tasks.base import EpisodeSpec, InfeasibleEpisode, get_task
-from wc.train.checkpoint import save_weights
 from wc.validate import PREDICATES
 from wc.validate.config import ValidateConfig
 from wc.validate.predicates import cloth_rows, robot_boxes, table_and_robot_distance
 
-TASK = "lift_handle"
-# Tolerances so loose that a tiny untrained model's rollouts pass every check (the acceptance path);
-# the rejection test tightens one of them.
-LOOSE = dict(max_speed_m_s=1e3, max_edge_strain=1e3, penetration_tol_m=10.0, self_intersection_every=10_000,
-             release_opening_m=10.0, adhesion_radius_m=0.01, adhesion_window_s=0.4, adhesion_rise_m=0.03,
-             workspace_min_m=[-10.0, -10.0, -10.0], workspace_max_m=[10.0, 10.0, 10.0],
-             min_visible_fraction=1e-9, view_camera="top", val_per_task=0, test_per_task=0, split_seed=0)
-
 
 @pytest.fixture(scope="module")
 def params() -> dict[str, Any]:
-    p = load_params()
-    p["validate"] = copy.deepcopy(LOOSE)
-    p["tasks"][TASK].update(speed_range_m_s=[0.4, 0.5], amplitude_range_m=[0.02, 0.03], hold_s=0.0)  # ~20 frames
-    p["tasks"]["common"].update(close_s=0.08)
-    p["expand"].update(task=TASK, target_trajectories=4, max_attempts=6, batch_size=2, task_check=False, device="cpu",
-                       seed=3)
-    return p
+    return expand_params()
 
 
 @pytest.fixture(scope="module")
 def store_path(tmp_path_factory, params) -> Path:
-    """Two lift_handle source episodes (the synthetic bag at rest, robot at home) and one of another task."""
-    d = tmp_path_factory.mktemp("store")
-    raw = write_synthetic_store(d / "raw.zarr", params, [("fall", "train"), ("carry", "train"), ("fall", "test")],
-                                frames=3)
-    src = TrajectoryStore(raw)
-    relabel = {"task": TASK, "cell": 1}
-    return copy_store(src, d / "s.zarr", src.episode_ids, {"ep_000000": relabel, "ep_000002": relabel}).path
+    return write_source_store(tmp_path_factory.mktemp("store"), params)
 
 
 @pytest.fixture(scope="module")
 def model_dir(tmp_path_factory, params) -> Path:
-    torch.manual_seed(0)
-    cfg = load_section({**params, "model": {**params["model"], "encoder_levels": 1, "decoder_layers": 1}},
-                       "model", ModelConfig)
-    model = WorldContact(cfg, velocity_m_s=0.3, delta_x_m=0.002, delta_v_m_s=0.05).eval()
-    torch.nn.init.normal_(model.head.mlp[-1].weight, std=0.1)  # visible predictions
-    d = tmp_path_factory.mktemp("models") / "worldcontact"
-    d.mkdir()
-    save_weights(model, d / "model.safetensors", {"projection": True, "dt": 0.04})
-    return d
+    return write_tiny_model(tmp_path_factory.mktemp("models"), params)
 
 
 @pytest.fixture(scope="module")

@@ -118,6 +118,11 @@ def params_hash(params: dict[str, Any], sections: list[str]) -> str:
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
 
+def without_keys(params: dict[str, Any], section: str, keys: tuple[str, ...]) -> dict[str, Any]:
+    """`params` with `keys` left out of `section` (what a stage's output does not depend on, e.g. where it runs)."""
+    return {**params, section: {k: v for k, v in params[section].items() if k not in keys}}
+
+
 def _build(tp: Any, value: Any, key: str, source: str) -> Any:
     origin = typing.get_origin(tp)
     if dataclasses.is_dataclass(tp):

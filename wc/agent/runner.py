@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from wc.agent.planner import Planner
+from wc.distributed import LocalExecutor, Unit, WorkerSpec, check_executor, drive
 from wc.data.store import TrajectoryWriter
 from wc.dynamics import ObjectState
 from wc.scene.config import SceneConfig
@@ -38,9 +39,15 @@ class AgentConfig:
     episodes_per_task: int  # accepted episodes wanted per task
     max_attempts_per_task: int  # give up on a task after this many episodes
     seed: int  # stage seed; episode seeds derive from it
-    workers: int = 1  # tasks run at once, one process each; 1: in the calling process (same episodes either way)
+    workers: int = 1  # local executor: tasks run at once, one process each; 1: in the calling process (same episodes)
+    executor: str = "local"  # local: as `workers` says; ray: every task's batches as Ray tasks (wc.agent.ray_tasks)
+    batches_in_flight: int = 1  # batches of a task proposed before the earlier ones' verdicts are filed (1: each
+    # proposal sees every earlier verdict); the episodes depend on it, not on the executor
 
     def validate(self) -> None:
+        check_executor(self.executor)
+        if self.batches_in_flight < 1:
+            raise ValueError(f"batches_in_flight must be >= 1, got {self.batches_in_flight}")
         if not self.tasks:
             raise ValueError("tasks must name at least one task")
         repeated = sorted({t for t in self.tasks if self.tasks.count(t) > 1})
@@ -245,34 +252,103 @@ def judge(world: TaskWorld, spec: EpisodeSpec, x: np.ndarray, v: np.ndarray, act
     return (verdict, len(x) - 1) if verdict else None
 
 
-def run_episodes(world: TaskWorld, planner: Planner, task_index: int, wanted: int, max_attempts: int,
-                 stage_seed: int, validate_cfg: ValidateConfig,
-                 on_frame: Callable[[], None] | None = None, deadline: float | None = None) -> Iterator[EpisodeRecord]:
-    """Simulate episodes of one task, `sim.worlds` at a time, until `wanted` are accepted or
-    `max_attempts` were tried; yields each with its verdict. With several worlds every batch is full (an idle
-    world costs a GPU step as much as a busy one), so a task may end with more than `wanted` accepted.
-    `deadline` (time.time() seconds): no batch starts after it (a chunked GPU job keeps what it simulated)."""
-    task, scene, sim = world.task, world.sim_scene, world.sim
-    accepted = attempts = 0
-    while accepted < wanted and attempts < max_attempts and (deadline is None or time.time() < deadline):
-        batch = min(sim.worlds, max_attempts - attempts)
-        specs = [planner.propose(task, episode_seed(stage_seed, task_index, attempts + i)) for i in range(batch)]
-        attempts += batch
-        runnable, unreachable = reset_batch(world, specs)
-        for spec in unreachable:
-            planner.record(spec, UNREACHABLE)
-            yield EpisodeRecord(spec, UNREACHABLE)
-        if not runnable:
+def simulate_batch(world: TaskWorld, specs: list[EpisodeSpec], validate_cfg: ValidateConfig,
+                   on_frame: Callable[[], None] | None = None) -> list[EpisodeRecord]:
+    """Reset, Execute and Validate one batch of proposed episodes (at most `sim.worlds`): a record per spec, the
+    unplannable ones (UNREACHABLE) first, then the others in `specs` order. What a worker does; the planner that
+    proposed the specs is told the verdicts by the caller."""
+    scene, sim = world.sim_scene, world.sim
+    runnable, unreachable = reset_batch(world, specs)
+    records = [EpisodeRecord(spec, UNREACHABLE) for spec in unreachable]
+    if not runnable:
+        return records
+    results, actions, release = execute(world, [r[1] for r in runnable], [r[2] for r in runnable], on_frame)
+    env = np.repeat(scene.env_poses()[None], len(actions[0]), axis=0)
+    for (spec, _, _), act, (x, v) in zip(runnable, actions, results):
+        poses = world.scene.link_poses(act)
+        failure = judge(world, spec, x, v, act, poses, validate_cfg, sim.cfg.frame_dt_s)  # Validate
+        name, frame = failure if failure else (None, None)
+        if name == "non_finite":  # nothing storable
+            records.append(EpisodeRecord(spec, name, frame))
             continue
-        results, actions, release = execute(world, [r[1] for r in runnable], [r[2] for r in runnable], on_frame)
-        env = np.repeat(scene.env_poses()[None], len(actions[0]), axis=0)
-        for (spec, _, _), act, (x, v) in zip(runnable, actions, results):
-            poses = world.scene.link_poses(act)
-            failure = judge(world, spec, x, v, act, poses, validate_cfg, sim.cfg.frame_dt_s)  # Validate
-            name, frame = failure if failure else (None, None)
-            planner.record(spec, name, frame)
-            accepted += name is None
-            if name == "non_finite":  # nothing storable
-                yield EpisodeRecord(spec, name, frame)
-                continue
-            yield EpisodeRecord(spec, name, frame, x, v, act, poses, env, layout_attrs(world, release))  # Accept
+        records.append(EpisodeRecord(spec, name, frame, x, v, act, poses, env, layout_attrs(world, release)))  # Accept
+    return records
+
+
+@dataclass
+class BatchResult:
+    """What one batch (a simulate work unit) gives back to the task's planner."""
+
+    records: list[EpisodeRecord]  # simulate_batch's, one per spec
+    solver_steps: int  # Newton solver steps it took
+    wall_s: float
+    table_top_z: float  # [m], for the lift curves
+
+
+class BatchSimulator:
+    """A simulate work unit's worker: a task's world simulating batches of proposed episodes."""
+
+    def __init__(self, world: TaskWorld, validate_cfg: ValidateConfig,
+                 on_frame: Callable[[], None] | None = None) -> None:
+        self.world, self.validate_cfg, self.on_frame = world, validate_cfg, on_frame
+
+    def __call__(self, specs: list[EpisodeSpec]) -> BatchResult:
+        started, steps = time.perf_counter(), self.world.solver_steps
+        records = simulate_batch(self.world, specs, self.validate_cfg, self.on_frame)
+        return BatchResult(records, self.world.solver_steps - steps, time.perf_counter() - started,
+                           float(self.world.scene.table.top_z))
+
+
+class TaskAttempts:
+    """The planner's side of one task's episodes, a stream of batches (wc.distributed.streams): the planner
+    proposes each batch from every verdict filed before it, and the verdicts are filed in proposal order, so the
+    planner and the failure memory see the same verdicts in the same order on any executor (workers only
+    simulate). Stops proposing once the accepted episodes plus those in flight reach `wanted`, after `max_attempts`,
+    or after `deadline` (time.time() seconds)."""
+
+    def __init__(self, task: Task, planner: Planner, task_index: int, worlds: int, wanted: int, max_attempts: int,
+                 stage_seed: int, worker: WorkerSpec, deadline: float | None = None) -> None:
+        self.task, self.planner, self.task_index, self.worlds = task, planner, task_index, worlds
+        self.wanted, self.max_attempts, self.stage_seed, self.worker = wanted, max_attempts, stage_seed, worker
+        self.deadline = deadline
+        self.attempts = self.accepted = self.in_flight = self.solver_steps = 0
+        self.records: list[EpisodeRecord] = []  # filed, in the order they ran
+        self.wall_s, self.table_top_z = 0.0, float("nan")
+
+    def next_unit(self) -> Unit | None:
+        if not (self.accepted + self.in_flight < self.wanted and self.attempts < self.max_attempts
+                and (self.deadline is None or time.time() < self.deadline)):
+            return None
+        batch = min(self.worlds, self.max_attempts - self.attempts)
+        specs = [self.planner.propose(self.task, episode_seed(self.stage_seed, self.task_index, self.attempts + i))
+                 for i in range(batch)]
+        label = f"task {self.task.name} attempts {self.attempts}-{self.attempts + batch - 1}"
+        self.attempts += batch
+        self.in_flight += batch
+        return Unit(self.worker, specs, label)
+
+    def file(self, result: BatchResult) -> None:
+        self.in_flight -= len(result.records)
+        for record in result.records:
+            self.planner.record(record.spec, record.first_failure, record.failure_frame)
+            self.accepted += record.first_failure is None
+        self.records += result.records
+        self.solver_steps += result.solver_steps
+        self.wall_s += result.wall_s
+        self.table_top_z = result.table_top_z
+
+
+def run_episodes(world: TaskWorld, planner: Planner, task_index: int, wanted: int, max_attempts: int,
+                 stage_seed: int, validate_cfg: ValidateConfig, on_frame: Callable[[], None] | None = None,
+                 deadline: float | None = None, batches_in_flight: int = 1) -> Iterator[EpisodeRecord]:
+    """Simulate episodes of one task in this process, `sim.worlds` at a time, until `wanted` are accepted or
+    `max_attempts` were tried; yields each with its verdict (the planner's side: wc.agent.attempts). With several
+    worlds every batch is full (an idle world costs a GPU step as much as a busy one), so a task may end with more
+    than `wanted` accepted. `deadline` (time.time() seconds): no batch starts after it (a chunked GPU job keeps what
+    it simulated)."""
+    simulator = BatchSimulator(world, validate_cfg, on_frame)
+    attempts = TaskAttempts(world.task, planner, task_index, world.sim.worlds, wanted, max_attempts, stage_seed,
+                            WorkerSpec(world.task.name, lambda: simulator), deadline)
+    for _ in drive(LocalExecutor(), [attempts], batches_in_flight):
+        pass
+    yield from attempts.records

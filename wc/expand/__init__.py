@@ -7,8 +7,9 @@ from wc.expand.contact import ContactProjectedPredictor, ContactProjection
 from wc.expand.plan import (NoSourceEpisodesError, PlannedEpisode, SourceEpisode, check_clear_at_start, pick_parent,
                             plan_episode, presettle_state, source_episodes)
 from wc.expand.batched_rollout import Rollout, rollout_batch
-from wc.expand.stage import expand, verdict
+from wc.expand.stage import expand
 from wc.expand.transform import check_on_table, planar_transform
+from wc.expand.worker import verdict
 
 __all__ = ["ContactProjectedPredictor", "ContactProjection", "ExpandConfig", "NoSourceEpisodesError",
            "PlannedEpisode", "Rollout", "SourceEpisode", "check_clear_at_start", "check_on_table", "expand",

@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from wc.devices import check_device_name
+from wc.distributed.config import check_executor
 
 Range = tuple[float, float]
 
@@ -40,6 +41,9 @@ class ExpandConfig:
     device: str = "cpu"  # cpu | cuda | cuda:k | auto
     seed: int = 0
     max_minutes: float = 0.0  # no batch started after this much wall time (0: no limit); the report says so
+    executor: str = "local"  # local: in this process; ray: each batch's rollouts and checks as a Ray task
+    batches_in_flight: int = 1  # batches planned before the earlier ones' verdicts are filed (1: each plan sees every
+    # earlier verdict); the episodes depend on it, not on the executor
 
     def validate(self) -> None:
         if not self.task:
@@ -74,3 +78,6 @@ class ExpandConfig:
         if not 0 < lo <= 1 <= hi:
             raise ValueError(f"projection_edge_ratio must satisfy 0 < min <= 1 <= max, got {self.projection_edge_ratio}")
         check_device_name(self.device)
+        check_executor(self.executor)
+        if self.batches_in_flight < 1:
+            raise ValueError(f"batches_in_flight must be >= 1, got {self.batches_in_flight}")

@@ -12,94 +12,43 @@ rollout then faces the source data's checks (wc.validate.predicates, in their or
 verdict when `task_check`); only the episodes that pass are written, the others are counted by their first
 failing check. Generation stops when the task's source episodes plus the accepted generated ones reach
 `target_trajectories`, or after `max_attempts` planned episodes; the report says whether the target was met.
+
+A batch's rollouts and checks are a work unit (wc.expand.worker), run in this process or, with `executor: ray`, as
+Ray tasks; the planning and the writing stay here, and the verdicts are filed in planning order
+(`ExpandPlans`, wc.distributed.streams), so either executor writes the same episodes.
 """
 
 from __future__ import annotations
 
 import json
+import secrets
 import time
+from collections import deque
 from contextlib import nullcontext
 from pathlib import Path
 from typing import Any
 
-import torch
 from tqdm import tqdm
 
 from wc.agent.planner import CoveragePlanner
-from wc.config import load_section, params_hash
+from wc.config import load_section, params_hash, without_keys
 from wc.data.store import TrajectoryStore, TrajectoryWriter
-from wc.devices import resolve_device, resolve_warp_device
-from wc.eval.predictors import CHECKPOINT, WorldContactPredictor
-from wc.expand.carry import PadCarry
+from wc.distributed import UnitsFailed, Unit, WorkerSpec, drive, every_unit, open_executor, uses_cuda
+from wc.eval.predictors import CHECKPOINT
 from wc.expand.config import ExpandConfig
-from wc.expand.constraints import JointStepProjection
-from wc.expand.contact import ContactProjectedPredictor
-from wc.expand.crossing_free import CrossingFreeStep
 from wc.expand.plan import PlannedEpisode, SourceEpisode, pick_parent, plan_episode, source_episodes
-from wc.expand.batched_rollout import Rollout, rollout_batch
-from wc.expand.self_contact import SelfContactSeparation
-from wc.expand.untangle import SelfIntersectionGuard
-from wc.model.layout import scene_layout
+from wc.expand.worker import Counters, ExpandBatch, ExpandWorker, load_expand_worker, merged_counters
 from wc.paths import EXPAND
 from wc.reports import environment_info, write_json_atomic
 from wc.scene.config import SceneConfig
 from wc.scene.scene import Scene
-from wc.sim.config import SimConfig
 from wc.seeds import SeedStream, episode_seed
 from wc.tasks.base import UNREACHABLE, InfeasibleEpisode, Task, get_task
-from wc.train.config import TrainConfig
 from wc.validate.config import ValidateConfig
-from wc.validate.predicates import PREDICATES, Episode, blow_up_detail, first_failure
+from wc.validate.predicates import PREDICATES
 from wc.validate.stage import EpisodeScenes
 
 SECTIONS = ["expand", "scene", "tasks", "validate", "train", "sim"]
-
-
-def verdict(task: Task, scene: Scene, task_check: bool, planned: PlannedEpisode, r: Rollout,
-            cfg: ValidateConfig, frame_dt_s: float) -> tuple[str, int] | None:
-    """(first failing check, frame) of a generated episode: the source data's predicates, then (if asked) the
-    task's own verdict on the last frame; None when it passes."""
-    failure = first_failure(scene, r.x, r.v, r.action, r.link_poses, cfg, frame_dt_s=frame_dt_s)
-    if failure is not None or not task_check:
-        return failure
-    reason = task.check(scene, planned.spec, r.x, r.action)
-    return (reason, len(r.x) - 1) if reason else None
-
-
-def _failure_detail(scene: Scene, r: Rollout, cfg: ValidateConfig, dt: float, reason: str,
-                    frame: int) -> dict[str, Any]:
-    """A blow_up's sub-criterion (speed or strain) and both values at its frame; nothing for other reasons."""
-    if reason != "blow_up":
-        return {}
-    return blow_up_detail(scene, Episode(r.x, r.v, r.action, r.link_poses, dt), cfg, frame)
-
-
-def joint_projection(cfg: ExpandConfig, scene: Scene, sim: SimConfig, validate_cfg: ValidateConfig
-                     ) -> JointStepProjection | None:
-    """The per-step projection `expand.projection: joint` asks for, with its options; None for the others."""
-    if cfg.projection != "joint":
-        return None
-    carry = PadCarry(scene, cfg.pad_carry_radius_m) if cfg.pad_carry else None
-    def rollback() -> SelfIntersectionGuard:
-        return SelfIntersectionGuard(scene, cfg.untangle_rounds, resolve_warp_device(validate_cfg.device, "validate.device"))
-
-    untangle = {"none": lambda: None, "rollback": rollback,
-                "bounded": lambda: CrossingFreeStep(scene, cfg.untangle_share, cfg.untangle_rounds),
-                "bounded+rollback": lambda: CrossingFreeStep(scene, cfg.untangle_share, cfg.untangle_rounds, hold=False,
-                                                             then=rollback())}[cfg.untangle]()
-    self_contact = (SelfContactSeparation(scene, sim.self_contact_gap_m, sim.self_contact_filter_rings)
-                    if cfg.self_contact else None)
-    return JointStepProjection(scene, cfg.projection_edge_ratio, cfg.projection_iterations, carry,
-                               untangle, self_contact, cfg.projection_final_edge_passes)
-
-
-def _untangle_stats(projection: JointStepProjection | None) -> dict[str, Any] | None:
-    """The self-crossing guard's counters (and its follow-up guard's, under "then"); None without a guard."""
-    guard = projection.untangle if projection is not None else None
-    if guard is None:
-        return None
-    then = getattr(guard, "then", None)
-    return {**guard.stats, **({"then": then.stats} if then is not None else {})}
 
 
 def _checkpoint_info(model_dir: Path) -> dict[str, Any]:
@@ -121,17 +70,92 @@ def _episode_attrs(planned: PlannedEpisode, source: SourceEpisode, failure: str 
             "parent": planned.parent, "yaw_deg": planned.yaw_deg, "shift_m": list(planned.shift_m), **source.layout}
 
 
+class ExpandPlans:
+    """The planner's side of the expansion, a stream of batches (wc.distributed.streams): each batch is planned from
+    every verdict filed before it; its verdicts are filed, and its episodes written, in planning order. Stops
+    planning once the accepted episodes plus those in flight reach `wanted`, after `max_attempts`, or after
+    `max_minutes` from `started` (time.perf_counter())."""
+
+    def __init__(self, task: Task, scene: Scene, sources: list[SourceEpisode], cfg: ExpandConfig,
+                 validate_cfg: ValidateConfig, dt: float, wanted: int, worker: WorkerSpec, started: float) -> None:
+        self.task, self.scene, self.sources, self.cfg, self.validate_cfg = task, scene, sources, cfg, validate_cfg
+        self.dt, self.wanted, self.worker, self.started = dt, wanted, worker, started
+        self.planner = CoveragePlanner()  # this run's outcomes only: the simulator's memory is about another dynamics
+        self.attempts = self.generated = self.accepted = self.frames = self.in_flight = 0
+        self.rollout_s = 0.0
+        self.rejections: dict[str, int] = {name: 0 for name in PREDICATES}
+        self.rejected: list[dict[str, Any]] = []
+        self.infeasible: list[dict[str, Any]] = []
+        self.counters: Counters = {}
+        self.device: str | None = None  # where the batches ran
+        self._batches: deque[list[tuple[PlannedEpisode, SourceEpisode]]] = deque()
+        self.writer: TrajectoryWriter | None = None
+        self.rejected_writer: TrajectoryWriter | None = None
+        self.bar: tqdm | None = None
+
+    def _may_plan(self) -> bool:
+        cfg = self.cfg
+        return (self.accepted + self.in_flight < self.wanted and self.attempts < cfg.max_attempts
+                and not (cfg.max_minutes > 0 and time.perf_counter() - self.started > 60.0 * cfg.max_minutes))
+
+    def next_unit(self) -> Unit | None:
+        cfg = self.cfg
+        while self._may_plan():
+            planned: list[tuple[PlannedEpisode, SourceEpisode]] = []
+            first = self.attempts
+            for i in range(first, first + min(cfg.batch_size, self.wanted - self.accepted - self.in_flight,
+                                              cfg.max_attempts - first)):
+                spec = self.planner.propose(self.task, episode_seed(cfg.seed, 0, i, SeedStream.EXPAND))
+                source = pick_parent(self.sources, spec.cell, i)
+                try:
+                    planned.append((plan_episode(self.task, self.scene, source, spec, cfg, self.dt, self.validate_cfg),
+                                    source))
+                except InfeasibleEpisode as err:
+                    self.planner.record(spec, UNREACHABLE)
+                    self.infeasible.append({"seed": spec.seed, "cell": spec.cell, "parent": source.eid,
+                                            "reason": str(err)})
+                self.attempts += 1
+            if planned:
+                self._batches.append(planned)
+                self.in_flight += len(planned)
+                return Unit(self.worker, [p for p, _ in planned], f"expand plans {first}-{self.attempts - 1}")
+        return None
+
+    def file(self, batch: ExpandBatch) -> None:
+        planned = self._batches.popleft()
+        self.in_flight -= len(planned)
+        self.rollout_s += batch.rollout_s
+        self.counters = merged_counters(self.counters, batch.counters)
+        self.device = batch.device
+        for (p, source), r, failure, detail in zip(planned, batch.rollouts, batch.failures, batch.details):
+            self.planner.record(p.spec, *(failure or (None, None)))
+            self.generated += 1
+            self.frames += len(r.x)
+            if failure is not None:
+                self.rejections[failure[0]] = self.rejections.get(failure[0], 0) + 1
+                self.rejected.append({"seed": p.spec.seed, "cell": p.spec.cell, "parent": p.parent,
+                                      "reason": failure[0], "frame": failure[1], "frames": len(r.x), **detail})
+                if self.rejected_writer is not None:
+                    self.rejected_writer.add_episode(r.x, r.v, r.action, r.link_poses, r.env_poses,
+                                                     **_episode_attrs(p, source, failure[0]))
+                continue
+            self.writer.add_episode(r.x, r.v, r.action, r.link_poses, r.env_poses, **_episode_attrs(p, source))
+            self.accepted += 1
+            self.bar.update(1)
+        self.bar.set_postfix(generated=self.generated, rejected=self.generated - self.accepted)
+
+
 def expand(params: dict[str, Any], model_dir: str | Path = EXPAND["model"], store: str | Path = EXPAND["store"],
            out: str | Path = EXPAND["out"], report: str | Path = EXPAND["report"],
            rejected_out: str | Path | None = None) -> dict[str, Any]:
     """Generate and check episodes until the target is met or the attempts run out; write the accepted ones
     to `out` and the rejected ones (accepted false, first_failure their check) to `rejected_out` (None: not
     kept), each atomically and possibly empty, and the report to `report`. Returns the report. The rejected
-    store is what lets the teacher check measure recall as well as precision."""
+    store is what lets the teacher check measure recall as well as precision. Ray units that kept failing: the
+    report lists them, neither store is written, UnitsFailed."""
     cfg = load_section(params, "expand", ExpandConfig)
     scene_cfg = load_section(params, "scene", SceneConfig)
     validate_cfg = load_section(params, "validate", ValidateConfig)
-    train_cfg = load_section(params, "train", TrainConfig)
     store, out, model_dir = Path(store), Path(out), Path(model_dir)
     rejected_out = Path(rejected_out) if rejected_out is not None else None
     if not store.exists():
@@ -148,25 +172,20 @@ def expand(params: dict[str, Any], model_dir: str | Path = EXPAND["model"], stor
     task = get_task(cfg.task, params)
     src = TrajectoryStore(store)
     sources, scene = source_episodes(src, task, EpisodeScenes(scene_cfg, src))
-    device = resolve_device(cfg.device, "expand.device")
-    torch.manual_seed(cfg.seed)
-    model = WorldContactPredictor.from_dir(model_dir, train_cfg, device)
-    layout = scene_layout(src, list(scene.objects), list(scene.link_names), model.tag_scale).to(device)
-    projection = joint_projection(cfg, scene, load_section(params, "sim", SimConfig), validate_cfg)
-    predictor = model if cfg.projection == "none" else ContactProjectedPredictor(model, scene, projection)
     dt = src.dt
     checkpoint = _checkpoint_info(model_dir)
     if checkpoint["dt"] is not None and abs(float(checkpoint["dt"]) - dt) > 1e-9:
         raise ValueError(f"{model_dir}: the model was trained at frame dt {checkpoint['dt']} s, {store} has {dt} s")
-    phash = params_hash(params, SECTIONS)
+    phash = params_hash(without_keys(params, "expand", ("executor",)), SECTIONS)
+    if cfg.executor == "local":  # the model loads before any output, as it always did
+        local = ExpandWorker(params, model_dir, scene, src)
+        worker = WorkerSpec("expand", lambda: local)
+    else:  # each Ray worker process loads the model once for this run
+        worker = WorkerSpec(f"expand:{secrets.token_hex(8)}", load_expand_worker,
+                            (params, str(model_dir.resolve()), str(store.resolve())))
+    plans = ExpandPlans(task, scene, sources, cfg, validate_cfg, dt, max(0, cfg.target_trajectories - len(sources)),
+                        worker, started)
 
-    planner = CoveragePlanner()  # this run's outcomes only: the simulator's memory is about another dynamics
-    wanted = max(0, cfg.target_trajectories - len(sources))
-    rejections: dict[str, int] = {name: 0 for name in PREDICATES}
-    rejected: list[dict[str, Any]] = []
-    infeasible: list[dict[str, Any]] = []
-    attempts = generated = accepted = frames = 0
-    rollout_s = 0.0
     def writer_to(path: Path | None) -> TrajectoryWriter | nullcontext[None]:
         if path is None:
             return nullcontext()
@@ -175,88 +194,75 @@ def expand(params: dict[str, Any], model_dir: str | Path = EXPAND["model"], stor
                                 link_names=src.link_names, env_names=src.env_names,
                                 chunk_frames=src.chunk_frames(sources[0].eid))
 
-    with writer_to(out) as writer, writer_to(rejected_out) as rejected_writer, \
-            tqdm(total=wanted, desc=f"expand {task.name}", unit="trajectory") as bar:
-        for w in (writer, rejected_writer):
-            if w is not None:
-                _copy_scene(src, w)
-        while accepted < wanted and attempts < cfg.max_attempts and not (
-                cfg.max_minutes > 0 and time.perf_counter() - started > 60.0 * cfg.max_minutes):
-            planned: list[tuple[PlannedEpisode, SourceEpisode]] = []
-            for i in range(attempts, attempts + min(cfg.batch_size, wanted - accepted, cfg.max_attempts - attempts)):
-                spec = planner.propose(task, episode_seed(cfg.seed, 0, i, SeedStream.EXPAND))
-                source = pick_parent(sources, spec.cell, i)
-                try:
-                    planned.append((plan_episode(task, scene, source, spec, cfg, dt, validate_cfg), source))
-                except InfeasibleEpisode as err:
-                    planner.record(spec, UNREACHABLE)
-                    infeasible.append({"seed": spec.seed, "cell": spec.cell, "parent": source.eid, "reason": str(err)})
-                attempts += 1
-            if not planned:
-                continue
-            t0 = time.perf_counter()
-            rollouts = rollout_batch(predictor, layout, scene, [p for p, _ in planned], dt, device)
-            rollout_s += time.perf_counter() - t0
-            for (p, source), r in zip(planned, rollouts):
-                failure = verdict(task, scene, cfg.task_check, p, r, validate_cfg, dt)
-                planner.record(p.spec, *(failure or (None, None)))
-                generated += 1
-                frames += len(r.x)
-                if failure is not None:
-                    rejections[failure[0]] = rejections.get(failure[0], 0) + 1
-                    rejected.append({"seed": p.spec.seed, "cell": p.spec.cell, "parent": p.parent,
-                                     "reason": failure[0], "frame": failure[1], "frames": len(r.x),
-                                     **_failure_detail(scene, r, validate_cfg, dt, *failure)})
-                    if rejected_writer is not None:
-                        rejected_writer.add_episode(r.x, r.v, r.action, r.link_poses, r.env_poses,
-                                                    **_episode_attrs(p, source, failure[0]))
-                    continue
-                writer.add_episode(r.x, r.v, r.action, r.link_poses, r.env_poses, **_episode_attrs(p, source))
-                accepted += 1
-                bar.update(1)
-            bar.set_postfix(generated=generated, rejected=generated - accepted)
-    wall = time.perf_counter() - started
-    result = {
-        "task": task.name,
+    failed = None
+    with open_executor(cfg.executor, params, uses_cuda(cfg.device, validate_cfg.device)) as executor:
+        try:
+            with writer_to(out) as plans.writer, writer_to(rejected_out) as plans.rejected_writer, \
+                    tqdm(total=plans.wanted, desc=f"expand {task.name}", unit="trajectory") as plans.bar, \
+                    every_unit(executor, "expand"):
+                for w in (plans.writer, plans.rejected_writer):
+                    if w is not None:
+                        _copy_scene(src, w)
+                for _ in drive(executor, [plans], cfg.batches_in_flight):
+                    pass
+        except UnitsFailed as err:
+            failed = err
+    result = _report(plans, cfg, sources, checkpoint, store, out, rejected_out, phash, executor.report(),
+                     time.perf_counter() - started)
+    write_json_atomic(report, result)
+    if failed is not None:
+        raise failed
+    return result
+
+
+def _report(plans: ExpandPlans, cfg: ExpandConfig, sources: list[SourceEpisode], checkpoint: dict[str, Any],
+            store: Path, out: Path, rejected_out: Path | None, phash: str, executor: dict[str, Any],
+            wall: float) -> dict[str, Any]:
+    """The stage's report (reports/expand.json)."""
+    accepted, generated, counters = plans.accepted, plans.generated, plans.counters
+    device = plans.device or cfg.device
+    untangle = {**counters["untangle"], **({"then": counters["then"]} if "then" in counters else {})} \
+        if "untangle" in counters else None
+    return {
+        "task": plans.task.name,
         "source_episodes": len(sources),
         "sources": [{"episode": s.eid, "cell": s.cell, "presettle_state": s.presettle} for s in sources],
         "projection": cfg.projection,
         "pad_carry": cfg.pad_carry,
-        "projection_stats": projection.stats if projection is not None else None,
+        "projection_stats": counters.get("projection"),  # None when no batch ran
         "untangle": cfg.untangle,
         "self_contact": cfg.self_contact,
-        "untangle_stats": _untangle_stats(projection),
+        "untangle_stats": untangle,
         "target_trajectories": cfg.target_trajectories,
-        "wanted_generated": wanted,
-        "attempts": attempts,
-        "infeasible_plans": len(infeasible),
+        "wanted_generated": plans.wanted,
+        "attempts": plans.attempts,
+        "infeasible_plans": len(plans.infeasible),
         "generated": generated,
         "accepted": accepted,
         "rejected": generated - accepted,
-        "rejections": rejections,
+        "rejections": plans.rejections,
         "acceptance_rate": accepted / generated if generated else None,
         "expanded_total": len(sources) + accepted,
         "target_reached": len(sources) + accepted >= cfg.target_trajectories,
-        "frames_generated": frames,
-        "rollout_s": rollout_s,
-        "model_frames_per_s": frames / rollout_s if rollout_s else None,
+        "frames_generated": plans.frames,
+        "rollout_s": plans.rollout_s,
+        "model_frames_per_s": plans.frames / plans.rollout_s if plans.rollout_s else None,
         "wall_s": wall,
-        "stopped_early": accepted < wanted and attempts < cfg.max_attempts,
+        "stopped_early": accepted < plans.wanted and plans.attempts < cfg.max_attempts,
         "trajectories_per_min": 60.0 * generated / wall,
         "accepted_per_min": 60.0 * accepted / wall,
-        "coverage": planner.coverage(task),
-        "rejected_episodes": rejected,
-        "infeasible": infeasible,
-        "device": str(device),
+        "coverage": plans.planner.coverage(plans.task),
+        "rejected_episodes": plans.rejected,
+        "infeasible": plans.infeasible,
+        "device": device,
+        "executor": executor,
         "model": checkpoint,
         "store": str(store),
         "out": str(out),
         "rejected_out": str(rejected_out) if rejected_out is not None else None,
         "params_hash": phash,
-        "environment": environment_info(str(device)),
+        "environment": environment_info(device),
     }
-    write_json_atomic(report, result)
-    return result
 
 
 def expand_summary(r: dict[str, Any]) -> str:

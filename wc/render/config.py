@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from wc.devices import check_device_name
+from wc.distributed.config import check_executor
 
 
 @dataclass(frozen=True)
@@ -18,9 +19,12 @@ class RenderConfig:
     shadows: bool  # shadow rays from the key light (about 1.5x the cost)
     sheet_frames: int  # contact sheet: frames per episode and camera, evenly spaced
     sheet_episodes: int  # contact sheet: at most this many episodes (first ones of the first store)
+    executor: str = "local"  # local: in this process; ray: `episodes_per_unit` episodes per Ray task
+    episodes_per_unit: int = 4  # episodes one work unit renders (the frames do not depend on it)
 
     def validate(self) -> None:
-        for name in ("width", "height", "frames_per_batch", "sheet_frames", "sheet_episodes"):
+        check_executor(self.executor)
+        for name in ("width", "height", "frames_per_batch", "sheet_frames", "sheet_episodes", "episodes_per_unit"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be a positive integer, got {getattr(self, name)}")
         if not self.cameras or len(set(self.cameras)) != len(self.cameras):

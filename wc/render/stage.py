@@ -4,30 +4,33 @@ a JSON report and a contact sheet PNG.
 Every selected episode is rendered at the trajectory's frame rate (one image per stored frame, fps =
 1 / dt) by Newton's SensorCamera (wc.render.renderer). Outputs are written atomically; a missing input
 store, a camera link an episode lacks, or a task filter that matches nothing fails with a clear error.
+`render.episodes_per_unit` episodes are a work unit (wc.render.worker), rendered in this process or, with
+`executor: ray`, as Ray tasks; the frames are written in episode order either way.
 """
 
 from __future__ import annotations
 
+import secrets
 import time
+from collections import deque
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 from tqdm import tqdm
 
-from wc.config import ParamsError, load_section, params_hash
+from wc.config import ParamsError, load_section, params_hash, without_keys
 from wc.data.store import TrajectoryStore
-from wc.devices import resolve_warp_device
+from wc.distributed import (LocalExecutor, RayExecutor, Unit, UnitsFailed, WorkerSpec, drive, every_unit,
+                            open_executor, uses_cuda)
 from wc.paths import RENDER, RENDER_PAIRS
 from wc.render.config import RenderConfig
 from wc.render.contact_sheet import write_contact_sheet
 from wc.render.frames import RenderedStore, RenderedWriter
-from wc.render.geometry import episode_geometry
-from wc.render.renderer import EpisodeRenderer
-from wc.render.rig import check_camera_links, render_cameras
+from wc.render.rig import render_cameras
+from wc.render.worker import RenderBatch, RenderWorker
 from wc.reports import environment_info, write_json_atomic
-from wc.scene.config import CameraConfig, SceneConfig
+from wc.scene.config import SceneConfig
 
 SECTIONS = ["render", "scene"]
 SOURCE, EXPANDED = RENDER_PAIRS
@@ -51,31 +54,42 @@ def select_episodes(store: TrajectoryStore, tasks: Sequence[str] | None) -> list
     return ids
 
 
-class _Renderers:
-    """One EpisodeRenderer per geometry layout, shared by every store of the run."""
+class StoreRender:
+    """One store's episodes as a stream of work units (wc.distributed.streams) of `per_unit` episodes each, written
+    in episode order as they are filed."""
 
-    def __init__(self, cameras: dict[str, CameraConfig], device: str, cfg: RenderConfig) -> None:
-        self.cameras, self.device, self.cfg = cameras, device, cfg
-        self.by_layout: dict[tuple, EpisodeRenderer] = {}
+    def __init__(self, store: TrajectoryStore, ids: list[str], per_unit: int, worker: WorkerSpec,
+                 writer: RenderedWriter, totals: dict[str, Any]) -> None:
+        self.store, self.worker, self.writer, self.totals = store, worker, writer, totals
+        self.chunks = deque(ids[i:i + per_unit] for i in range(0, len(ids), per_unit))
+        self.filing: deque[list[str]] = deque()
+        self.frames = 0
+        self.bar = tqdm(total=len(ids), desc=f"render {store.path.name}", unit="episode")
 
-    def frames(self, store: TrajectoryStore, eid: str, scene_cfg: SceneConfig) -> dict[str, np.ndarray]:
-        where = f"{store.path}: episode {eid}"
-        geometry = episode_geometry(store, eid, scene_cfg)
-        check_camera_links(self.cameras, geometry.link_names, where)
-        renderer = self.by_layout.get(geometry.layout)
-        if renderer is None:
-            renderer = EpisodeRenderer(geometry, self.cameras, self.device, self.cfg.frames_per_batch, self.cfg.shadows)
-            self.by_layout[geometry.layout] = renderer
-        a = store.read_episode(eid, ("x", "link_poses"))
-        return renderer.render(a["x"], a["link_poses"], where)
+    def next_unit(self) -> Unit | None:
+        if not self.chunks:
+            return None
+        eids = self.chunks.popleft()
+        self.filing.append(eids)
+        return Unit(self.worker, (str(self.store.path.resolve()), eids),
+                    f"render {self.store.path} episodes {eids[0]}..{eids[-1]}")
 
-    def seconds(self) -> dict[str, float]:
-        return {n: sum(r.seconds[n] for r in self.by_layout.values()) for n in self.cameras}
+    def file(self, batch: RenderBatch) -> None:
+        for eid, views in zip(self.filing.popleft(), batch.views):
+            info = self.store.episode_attrs(eid)
+            self.writer.add_episode(eid, views, {k: info.get(k) for k in ("task", "source", "split", "seed")})
+            self.frames += self.store.num_frames(eid)
+            self.bar.update(1)
+        totals = self.totals
+        totals["seconds"] = {n: totals["seconds"].get(n, 0.0) + t for n, t in batch.seconds.items()}
+        totals["renderers_built"] += batch.renderers_built
+        totals["device"] = batch.device
 
 
-def render_store(src: Path, out: Path, scene_cfg: SceneConfig, cfg: RenderConfig, renderers: _Renderers,
-                 phash: str) -> dict[str, Any]:
-    """Render the selected episodes of one trajectory store into a rendered-frames store at `out`."""
+def render_store(src: Path, out: Path, cfg: RenderConfig, executor: LocalExecutor | RayExecutor, worker: WorkerSpec,
+                 cameras: list[str], phash: str, totals: dict[str, Any]) -> dict[str, Any]:
+    """Render the selected episodes of one trajectory store into a rendered-frames store at `out` (nothing, if a
+    unit kept failing); the render times and renderers built are added to `totals`."""
     if not src.exists():
         raise FileNotFoundError(f"trajectory store {src} not found: run the stage that writes it first "
                                 "(simulate + validate for the source store, expand for the expanded one)")
@@ -83,23 +97,22 @@ def render_store(src: Path, out: Path, scene_cfg: SceneConfig, cfg: RenderConfig
         raise ValueError(f"render would overwrite its input {src}: choose another output path")
     store = TrajectoryStore(src)
     ids = select_episodes(store, cfg.tasks)
-    frames = 0
     attrs = {"trajectories": str(src), "params_hash": phash, "created_by": "stages.render",
              "trajectory_params_hash": store.attrs.get("params_hash"), "dt": store.dt}
-    with RenderedWriter(out, cameras=list(renderers.cameras), width=cfg.width, height=cfg.height,
-                        fps=1.0 / store.dt, attrs=attrs) as writer:
-        for eid in tqdm(ids, desc=f"render {src.name}", unit="episode"):
-            views = renderers.frames(store, eid, scene_cfg)
-            info = store.episode_attrs(eid)
-            writer.add_episode(eid, views, {k: info.get(k) for k in ("task", "source", "split", "seed")})
-            frames += store.num_frames(eid)
-    return {"trajectories": str(src), "out": str(out), "episodes": len(ids), "frames": frames}
+    with RenderedWriter(out, cameras=cameras, width=cfg.width, height=cfg.height, fps=1.0 / store.dt,
+                        attrs=attrs) as writer, every_unit(executor, "render"):
+        stream = StoreRender(store, ids, cfg.episodes_per_unit, worker, writer, totals)
+        with stream.bar:
+            for _ in drive(executor, [stream], max(1, len(stream.chunks))):  # no unit depends on another
+                pass
+    return {"trajectories": str(src), "out": str(out), "episodes": len(ids), "frames": stream.frames}
 
 
 def render(params: dict[str, Any], pairs: Sequence[tuple[str | Path, str | Path]] | None = None,
            report: str | Path = RENDER["report"], sheet: str | Path = RENDER["sheet"]) -> dict[str, Any]:
     """Render each (trajectory store, output store) pair (default: source, and expanded when present);
-    write the report and a contact sheet of the first output. Returns the report."""
+    write the report and a contact sheet of the first output. Returns the report. Ray units that kept failing:
+    the report lists them, the store they belong to and later ones are not written, UnitsFailed."""
     cfg = load_section(params, "render", RenderConfig)
     scene_cfg = load_section(params, "scene", SceneConfig)
     try:
@@ -109,14 +122,26 @@ def render(params: dict[str, Any], pairs: Sequence[tuple[str | Path, str | Path]
     pairs = [(Path(a), Path(b)) for a, b in (default_pairs() if pairs is None else pairs)]
     if not pairs:
         raise ValueError("render: no (trajectory store, output store) pair given")
-    device = resolve_warp_device(cfg.device, "render.device")
-    phash = params_hash(params, SECTIONS)
-    renderers = _Renderers(cameras, device, cfg)
+    phash = params_hash(without_keys(params, "render", ("executor", "episodes_per_unit")), SECTIONS)
+    if cfg.executor == "local":  # one renderer per layout for the whole run, as it always was
+        local = RenderWorker(params)
+        worker = WorkerSpec("render", lambda: local)
+    else:
+        worker = WorkerSpec(f"render:{secrets.token_hex(8)}", RenderWorker, (params,))
+    totals: dict[str, Any] = {"seconds": {}, "renderers_built": 0, "device": cfg.device}
     started = time.perf_counter()
-    outputs = [render_store(src, out, scene_cfg, cfg, renderers, phash) for src, out in pairs]
+    outputs, failed = [], None
+    with open_executor(cfg.executor, params, uses_cuda(cfg.device)) as executor:
+        try:
+            for src, out in pairs:
+                outputs.append(render_store(src, out, cfg, executor, worker, list(cameras), phash, totals))
+        except UnitsFailed as err:
+            failed = err
     wall = time.perf_counter() - started
     frames = sum(o["frames"] for o in outputs)
-    write_contact_sheet(RenderedStore(pairs[0][1]), sheet, cfg.sheet_frames, cfg.sheet_episodes)
+    if failed is None:
+        write_contact_sheet(RenderedStore(pairs[0][1]), sheet, cfg.sheet_frames, cfg.sheet_episodes)
+    device = totals["device"] if cfg.executor == "ray" else local.device
     result = {
         "outputs": outputs,
         "episodes": sum(o["episodes"] for o in outputs),
@@ -125,15 +150,18 @@ def render(params: dict[str, Any], pairs: Sequence[tuple[str | Path, str | Path]
         "width": cfg.width,
         "height": cfg.height,
         "device": device,
-        "ms_per_frame": {n: 1000.0 * s / frames if frames else None for n, s in renderers.seconds().items()},
+        "ms_per_frame": {n: 1000.0 * totals["seconds"].get(n, 0.0) / frames if frames else None for n in cameras},
         "ms_per_frame_all_cameras_wall": 1000.0 * wall / frames if frames else None,
-        "renderers_built": len(renderers.by_layout),
+        "renderers_built": totals["renderers_built"],
         "contact_sheet": str(sheet),
+        "executor": executor.report(),
         "params_hash": phash,
         "wall_s": wall,
         "environment": environment_info(device),
     }
     write_json_atomic(report, result)
+    if failed is not None:
+        raise failed
     return result
 
 
