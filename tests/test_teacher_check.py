@@ -51,7 +51,8 @@ def test_newton_episodes_replay_to_themselves_batched_over_worlds(tmp_path):
         episodes.append((spec, x, v, actions, verdict))
     _write(tmp_path / "gen.zarr", world, scene_cfg, sim_cfg, episodes[:1])
     _write(tmp_path / "rej.zarr", world, scene_cfg, sim_cfg, episodes[1:], failure="blow_up")
-    report = teacher_check(params, tmp_path / "gen.zarr", rejected_path=tmp_path / "rej.zarr")
+    report = teacher_check(params, tmp_path / "gen.zarr", rejected_path=tmp_path / "rej.zarr",
+                           newton_perturb_m=[0.0, 0.003])
     assert report["plans"] == 2 and report["worlds"] == 2
     for plan, (_, x, _, _, verdict) in zip(report["episodes"], episodes):
         assert plan["newton"] == ("accepted" if verdict is None else verdict[0])
@@ -59,6 +60,11 @@ def test_newton_episodes_replay_to_themselves_batched_over_worlds(tmp_path):
         assert plan["mean_rms_error_m"] < 2e-3, plan["rms_error_m"]
     accepted, rejected = report["episodes"]
     assert rejected["worldcontact"] == "blow_up" and accepted["worldcontact"] == accepted["newton"]
+    # Newton against itself: another batch order stays near the first rollout; 3 mm of noise moves it further
+    rerun, noisy = report["newton_self_agreement"]["0"], report["newton_self_agreement"]["0.003"]
+    assert rerun["plans"] == noisy["plans"] == 2 and rerun["agreement"] == 1.0
+    assert rerun["mean_rms_to_first_m"] < 2e-3 < noisy["mean_rms_to_first_m"], (rerun, noisy)
+    assert [len(p["newton_repeats"]) for p in report["episodes"]] == [2, 2]
     newton_accepts = [p["worldcontact"] == "accepted" for p in report["episodes"] if p["newton"] == "accepted"]
     assert report["recall"] == (sum(newton_accepts) / len(newton_accepts) if newton_accepts else None)
 
@@ -67,6 +73,8 @@ def test_missing_store_is_named_and_an_empty_one_reported(tmp_path):
     params = load_params()
     with pytest.raises(FileNotFoundError, match="run the expand stage"):
         teacher_check(params, tmp_path / "none.zarr")
+    with pytest.raises(ValueError, match="newton_perturb_m must be scales >= 0"):
+        teacher_check(params, tmp_path / "none.zarr", newton_perturb_m=[0.001, -1.0])
     scene_cfg, sim_cfg = load_section(params, "scene", SceneConfig), load_section(params, "sim", SimConfig)
     with simulator_store(tmp_path / "empty.zarr", scene_cfg, sim_cfg, [get_task("lift_handle", params)], "t", "t"):
         pass

@@ -6,8 +6,14 @@ two verdicts agree, how often Newton accepts what WorldContact accepted (`precis
 accepted what Newton accepts (`recall`: needs the rejected episodes, which the expand stage keeps in a second
 store) and how far the two trajectories drift apart per frame.
 
+Newton against itself (`newton_perturb_m`): for each listed scale s, Newton replays every plan once more, in another
+batch order (VBD's few iterations do not converge, so a plan's neighbours in the batch move it slightly) and from its
+frame-0 positions with N(0, s^2) added to each coordinate. How often Newton's verdict then stays the same is the
+agreement a perfect model could reach on these plans: the teacher check's ceiling.
+
     python -m stages.teacher_check [--params params.yaml] [--store data/expanded/trajectories.zarr]
         [--rejected data/expanded/rejected.zarr] [--report reports/teacher_check.json] [--limit N]
+        [--newton-perturb-m S [S ...]]
 """
 
 from __future__ import annotations
@@ -41,15 +47,18 @@ def _generated(path: Path, task: str, limit: int | None) -> list[tuple[Trajector
 
 
 def _replay(world: TaskWorld, plans: list[tuple[TrajectoryStore, str]], validate_cfg: ValidateConfig,
-            frame_dt_s: float) -> list[dict[str, Any]]:
+            frame_dt_s: float, perturb_m: float = 0.0, seed: int = 0) -> tuple[list[dict[str, Any]], list[np.ndarray]]:
     """Both verdicts and the per-frame RMS distance of each plan, Newton rolling out sim.worlds plans at a time
-    (a batch runs to its longest plan; each plan is judged on its own frames)."""
-    task, out = world.task, []
+    (a batch runs to its longest plan; each plan is judged on its own frames), from frame-0 positions with
+    N(0, perturb_m^2) noise (seeded) added. Also returns Newton's positions of each plan."""
+    task, out, newton_x = world.task, [], []
+    rng = np.random.default_rng(seed)
     for first in tqdm(range(0, len(plans), world.sim.worlds), desc="teacher check", unit="batch"):
         batch = plans[first:first + world.sim.worlds]
         eps = [store.read_episode(eid, ("x", "v", "action")) for store, eid in batch]
-        rollouts = execute(world, [ObjectState(ep["x"][0], ep["v"][0]) for ep in eps], [ep["action"] for ep in eps],
-                           None)[0]
+        starts = [ObjectState((ep["x"][0] + rng.normal(0.0, perturb_m, ep["x"][0].shape)).astype(np.float32)
+                              if perturb_m > 0 else ep["x"][0], ep["v"][0]) for ep in eps]
+        rollouts = execute(world, starts, [ep["action"] for ep in eps], None)[0]
         for (store, eid), ep, (x, v) in zip(batch, eps, rollouts):
             attrs, frames = store.episode_attrs(eid), len(ep["action"])
             x, v = x[:frames], v[:frames]
@@ -58,24 +67,54 @@ def _replay(world: TaskWorld, plans: list[tuple[TrajectoryStore, str]], validate
             newton = judge(world, spec, x, v, ep["action"], world.scene.link_poses(ep["action"]), validate_cfg,
                            frame_dt_s)
             rms = np.sqrt(np.square(x - ep["x"][:frames]).sum(-1).mean(-1))  # (T,) m
+            newton_x.append(x)
             out.append({"episode": eid, "store": str(store.path), "parent": attrs.get("parent"),
                         "worldcontact": "accepted" if attrs["accepted"] else str(attrs["first_failure"]),
                         "newton": "accepted" if newton is None else newton[0],
                         "newton_failure_frame": None if newton is None else int(newton[1]),
                         "rms_error_m": [float(e) for e in rms], "final_rms_error_m": float(rms[-1]),
                         "mean_rms_error_m": float(rms.mean())})
-    return out
+    return out, newton_x
 
 
 def _share(hits: list[bool]) -> float | None:
     return sum(hits) / len(hits) if hits else None
 
 
+def _same_verdict(a: str, b: str) -> bool:
+    """Two verdicts agree: both accept, or both reject (for whatever reason)."""
+    return a == b or "accepted" not in (a, b)
+
+
+def _newton_self_check(world: TaskWorld, plans: list[tuple[TrajectoryStore, str]], checked: list[dict[str, Any]],
+                       first_x: list[np.ndarray], validate_cfg: ValidateConfig, frame_dt_s: float,
+                       scales_m: list[float], seed: int) -> dict[str, dict[str, Any]]:
+    """Newton's verdicts again, per scale: another batch order and perturbed frame-0 positions. Each plan's repeat
+    verdict and mean RMS distance to Newton's first rollout go into `checked` (`newton_repeats`); per scale, the
+    share of plans whose verdict stayed the same and the mean of those distances."""
+    out = {}
+    for k, scale in enumerate(scales_m):
+        order = np.random.default_rng([seed, k]).permutation(len(plans))
+        again, again_x = _replay(world, [plans[i] for i in order], validate_cfg, frame_dt_s, scale, seed + 1 + k)
+        same, drift = [], []
+        for i, repeat, x in zip(order, again, again_x):
+            drift.append(float(np.sqrt(np.square(x - first_x[i]).sum(-1).mean(-1)).mean()))
+            checked[i].setdefault("newton_repeats", []).append({"perturb_m": scale, "newton": repeat["newton"],
+                                                                "mean_rms_to_first_m": drift[-1]})
+            same.append(_same_verdict(checked[i]["newton"], repeat["newton"]))
+        out[f"{scale:g}"] = {"perturb_m": scale, "plans": len(same), "agreement": _share(same),
+                             "flips": len(same) - sum(same), "mean_rms_to_first_m": float(np.mean(drift))}
+    return out
+
+
 def teacher_check(params: dict[str, Any], store_path: str | Path, limit: int | None = None,
-                  rejected_path: str | Path | None = None) -> dict[str, Any]:
+                  rejected_path: str | Path | None = None, newton_perturb_m: list[float] | None = None) -> dict[str, Any]:
     """Replay the generated episodes of `expand.task` (the first `limit` of each store: the accepted ones in
     `store_path`, the rejected ones in `rejected_path` if given) in Newton; per plan both verdicts and the
-    per-frame RMS vertex distance between the two rollouts; agreement, precision, recall and the confusion table."""
+    per-frame RMS vertex distance between the two rollouts; agreement, precision, recall and the confusion table;
+    with `newton_perturb_m`, Newton's agreement with itself (the module docstring)."""
+    if any(not s >= 0 for s in newton_perturb_m or []):
+        raise ValueError(f"teacher check: newton_perturb_m must be scales >= 0 m, got {newton_perturb_m}")
     cfg = load_section(params, "expand", ExpandConfig)
     sim_cfg = load_section(params, "sim", SimConfig)
     validate_cfg = load_section(params, "validate", ValidateConfig)
@@ -89,14 +128,16 @@ def teacher_check(params: dict[str, Any], store_path: str | Path, limit: int | N
                 "note": f"no generated {cfg.task!r} episode in the stores", "environment": environment_info("cpu")}
     world = build_task_world(load_section(params, "scene", SceneConfig), sim_cfg, get_task(cfg.task, params))
     started = time.perf_counter()
-    checked = _replay(world, plans, validate_cfg, sim_cfg.frame_dt_s)
+    checked, newton_x = _replay(world, plans, validate_cfg, sim_cfg.frame_dt_s)
+    self_check = _newton_self_check(world, plans, checked, newton_x, validate_cfg, sim_cfg.frame_dt_s,
+                                    newton_perturb_m or [], cfg.seed)
     confusion: dict[str, int] = {}
     for p in checked:
         key = f"worldcontact {p['worldcontact']} / newton {p['newton']}"
         confusion[key] = confusion.get(key, 0) + 1
     return {**base, "plans": len(checked),
-            "agreement": _share([p["worldcontact"] == p["newton"] or "accepted" not in (p["worldcontact"], p["newton"])
-                                 for p in checked]),
+            "agreement": _share([_same_verdict(p["worldcontact"], p["newton"]) for p in checked]),
+            "newton_self_agreement": self_check,
             "precision": _share([p["newton"] == "accepted" for p in checked if p["worldcontact"] == "accepted"]),
             "recall": _share([p["worldcontact"] == "accepted" for p in checked if p["newton"] == "accepted"])
             if rejected_path is not None else None,
@@ -108,9 +149,10 @@ def teacher_check(params: dict[str, Any], store_path: str | Path, limit: int | N
 
 
 def run(params: dict[str, Any], store: str | Path = TEACHER_CHECK["store"],
-        report: str | Path = TEACHER_CHECK["report"], rejected: str | Path | None = TEACHER_CHECK["rejected"], limit: int | None = None) -> dict[str, Any]:
+        report: str | Path = TEACHER_CHECK["report"], rejected: str | Path | None = TEACHER_CHECK["rejected"],
+        limit: int | None = None, newton_perturb_m: list[float] | None = None) -> dict[str, Any]:
     """`teacher_check` of the stores `store` and `rejected` (None: accepted plans only), written to `report`."""
-    result = teacher_check(params, store, limit, rejected)
+    result = teacher_check(params, store, limit, rejected, newton_perturb_m)
     write_json_atomic(report, result)
     return result
 
@@ -121,4 +163,5 @@ def teacher_check_summary(report: dict[str, Any]) -> str:
         return f"teacher check: {report['note']}"
     return (f"teacher check: {report['plans']} plans, agreement {report['agreement']:.2f}, precision "
             f"{report['precision']}, recall {report['recall']}, mean RMS {report['mean_rms_error_m'] * 1000:.1f} mm; "
-            f"{report['confusion']}")
+            f"{report['confusion']}" + "".join(f"; Newton against itself at {k} m: agreement {v['agreement']:.2f}"
+                                               for k, v in report.get("newton_self_agreement", {}).items()))
