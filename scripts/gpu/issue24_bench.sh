@@ -1,0 +1,26 @@
+#!/bin/bash
+# Issue 24: simulate's episodes per minute on the ray executor, 1 worker vs N workers sharing one GPU (N batches of
+# one task in flight, ray.gpus_per_unit 1/N, WORLDS Newton worlds each), beside the local executor in-process;
+# scripts/gpu/issue24_bench.py does the work and writes $OUT_DIR/simulate_ray_$NAME.json and .md.
+#   bash scripts/gpu/issue24_bench.sh                     # GPU: workers 1 4 8, 8 worlds each, 1 min per row (~8 min)
+#   DEVICE=cpu WORKERS="1 2" WORLDS=1 TASK=bag_drop MINUTES=0.5 NAME=cpu OUT_DIR=reports \
+#     EXTRA="--set tasks.bag_drop.duration_s=0.4" bash scripts/gpu/issue24_bench.sh    # the tiny CPU run
+# On the offline GPU machine ray must be importable: its wheels travel with the others (pack-wheels.sh ray==2.60.0
+# msgpack==1.2.4 jsonschema==4.26.0 jsonschema-specifications==2025.9.1 referencing==0.37.0 rpds-py==2026.9.1, beside
+# warp-lang, newton, zarr, trimesh), unpacked into /tmp/site; the precompiled CUDA kernels (KERNELS) into ~/.cache/warp.
+cd "$(dirname "$0")/../.."
+export PYTHONPATH=/tmp/site:$PWD
+DEVICE=${DEVICE:-cuda}
+if [ "$DEVICE" != cpu ]; then
+  kernels=${KERNELS:-scripts/gpu/kernel_cache/warp-1.19.0_newton-1.8.0_sm90.tar.xz}
+  [ -f "$kernels" ] && mkdir -p ~/.cache/warp && xz -dc "$kernels" | tar x -C ~/.cache/warp --skip-old-files
+  nvidia-smi --query-gpu=name,memory.used --format=csv
+fi
+PY=${PYTHON:-$( [ -x .venv/bin/python ] && echo .venv/bin/python || echo python)}
+OUT_DIR=${OUT_DIR:-${OUT:-reports/gpu}}
+mkdir -p "$OUT_DIR"
+# shellcheck disable=SC2086  # WORKERS and EXTRA are word lists
+timeout ${TIMEOUT:-580} $PY scripts/gpu/issue24_bench.py --params ${PARAMS:-params.yaml} --device $DEVICE \
+  --workers ${WORKERS:-1 4 8} --worlds ${WORLDS:-8} --task ${TASK:-lift_handle} --minutes ${MINUTES:-1.0} \
+  --out "$OUT_DIR/simulate_ray_${NAME:-h100}.json" ${EXTRA:-} 2>&1 | tr '\r' '\n' | grep -v "it/s\]$\|task/s\]$"
+exit ${PIPESTATUS[0]}
