@@ -141,7 +141,7 @@ def test_stepping_newton_gives_the_rollouts_frames(store_path, configs, scale):
     np.testing.assert_allclose(np.stack([s.v for s in states]), v, rtol=0, atol=1e-4)
     dynamics.start(initial, actions[0])
     dynamics.step(initial, actions[1])
-    other = ObjectState(case.x[1], case.v[1])  # the recording's frame 1, not the state the step gave
+    other = ObjectState(case.x[2], case.v[2])  # not the state the step gave (the recording's frame 1 would be it)
     np.testing.assert_allclose(dynamics.step(other, actions[2]).x, dynamics.rollout(other, actions[1:3])[0][1],
                                rtol=0, atol=1e-6)
     with pytest.raises(RuntimeError, match="before start"):  # a rollout in between ends the stepped episode

@@ -15,7 +15,7 @@ state (at the current command and frame). Stepping through an episode's actions 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Protocol, runtime_checkable
 
 import numpy as np
@@ -80,6 +80,7 @@ class SteppedEpisode:
     origin: ObjectState
     actions: list[np.ndarray]
     first: int = 0
+    last: ObjectState = field(init=False)
 
     def __post_init__(self) -> None:
         self.last = self.origin

@@ -1,9 +1,8 @@
-"""One simulated frame at a time: the closed loop needs what NewtonSimulator.rollout_batch does internally
-(write the frame-0 state, advance one frame, read the state back) with the next action chosen in between.
+"""One simulated frame at a time for the closed loop: the next action is chosen from the state in between.
 
-It drives NewtonSimulator's public per-frame API (`set_state`, `advance_frame`, `read_state`, the steps
-`rollout_batch` is made of); the frames it produces are those of `rollout_batch` (same solver history, same
-substeps), which tests/test_policy_eval.py checks.
+A thin adapter over the `wc.dynamics.Dynamics` step of NewtonSimulator (`start`, then `step` from the state it last
+gave, so the solver's history goes on): the frames it produces are those of `rollout_batch`, which
+tests/test_policy_eval.py checks. A state that turns non-finite comes back as NaN for the environment to judge.
 """
 
 from __future__ import annotations
@@ -21,20 +20,22 @@ class FrameStepper:
         if sim.worlds != 1:
             raise ValueError(f"FrameStepper needs a one-world simulator, got {sim.worlds} worlds")
         self.sim = sim
-        self.action: np.ndarray | None = None  # (14,) the robot's current command
+        self.state: ObjectState | None = None  # the current frame's object state
 
     def start(self, state: ObjectState, action: np.ndarray) -> None:
         """Frame 0: object state and robot command (14,); forgets the solver's history."""
-        self.action = np.asarray(action, np.float32).reshape(14)
-        self.sim.set_state([state], self.action[None])
+        self.sim.start(state, action)
+        self.state = state
 
     def advance(self, action: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Move the robot from the current command to `action` (14,) over one frame; returns the object
-        state after it, x and v each (N, 3) float32, not checked finite (the last substep's velocity)."""
-        if self.action is None:
+        """Move the robot from the current command to `action` (14,) over one frame; returns the object state after
+        it, x and v (the frame-mean velocity) each (N, 3) float32, NaN once it turned non-finite."""
+        if self.state is None:
             raise RuntimeError("FrameStepper.advance before start")
-        nxt = np.asarray(action, np.float32).reshape(14)
-        self.sim.advance_frame(self.action[None], nxt[None])
-        self.action = nxt
-        x, v = self.sim.read_state()
-        return x[0], v[0]
+        try:
+            self.state = self.sim.step(self.state, action)
+        except FloatingPointError:
+            self.state = None  # the episode is over: start again
+            nan = np.full((self.sim.scene.num_vertices, 3), np.nan, np.float32)
+            return nan, nan.copy()
+        return self.state.x, self.state.v
