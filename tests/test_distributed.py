@@ -163,3 +163,18 @@ def test_a_stage_uses_the_ray_this_process_started(local_ray):
     with open_executor("ray", load_params(), gpu=True) as executor:
         assert executor.address == "this process's Ray" and executor.resources == {"num_cpus": 1.0, "num_gpus": 1.0}
     assert ray.is_initialized()
+
+
+def test_the_gpu_benchmark_asks_for_valid_params():
+    """A wrong key in scripts/gpu/issue24_bench.py would cost a GPU call."""
+    import argparse
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("issue24_bench", ROOT / "scripts" / "gpu" / "issue24_bench.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    args = argparse.Namespace(params=ROOT / "params.yaml", device="cuda", worlds=8, task="lift_handle", overrides=[])
+    params = bench.bench_params(args, "ray", 8)
+    agent, ray = load_section(params, "agent", AgentConfig), load_section(params, "ray", RayConfig)
+    assert (agent.executor, agent.batches_in_flight, agent.tasks) == ("ray", 8, ("lift_handle",))
+    assert ray.gpus_per_unit == 0.125

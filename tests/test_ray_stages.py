@@ -27,8 +27,8 @@ from wc.render.frames import RenderedStore
 pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("local_ray")]
 TIMING = {"wall_s", "episodes_per_min", "solver_steps_per_s", "simulated_s_per_wall_s", "rollout_s",
           "model_frames_per_s", "trajectories_per_min", "accepted_per_min", "ms_per_frame",
-          "ms_per_frame_all_cameras_wall", "renderers_built", "executor", "out", "rejected_out", "outputs", "contact_sheet",
-          "memory"}
+          "ms_per_frame_all_cameras_wall", "renderers_built", "executor", "out", "rejected_out", "outputs",
+          "contact_sheet", "memory"}
 
 
 def _same_stores(a: Path, b: Path) -> list[str]:
@@ -57,8 +57,8 @@ def _same_reports(a: dict[str, Any], b: dict[str, Any]) -> None:
 def test_simulate_writes_the_same_episodes_and_memory_on_ray(tmp_path, in_flight):
     runs = {}
     for executor in ("local", "ray"):
-        params = load_params(*TWO_TASKS, "agent.episodes_per_task=2", "agent.max_attempts_per_task=3", "agent.workers=1",
-                             f"agent.executor={executor}", f"agent.batches_in_flight={in_flight}")
+        params = load_params(*TWO_TASKS, "agent.episodes_per_task=2", "agent.max_attempts_per_task=3",
+                             "agent.workers=1", f"agent.executor={executor}", f"agent.batches_in_flight={in_flight}")
         d = tmp_path / executor
         runs[executor] = d, simulate(params, d / "raw.zarr", d / "simulate.json", d / "memory.json")
     (local, a), (ray, b) = runs["local"], runs["ray"]
@@ -123,6 +123,7 @@ def test_a_render_unit_that_keeps_failing_leaves_no_store(tmp_path, render_input
     assert [p.name for p in tmp_path.iterdir()] == ["r.json"]  # no temporary left behind either
     report = json.loads((tmp_path / "r.json").read_text())
     [failed] = report["executor"]["failed_units"]
-    assert BAD_EPISODE in failed["label"] and f"RuntimeError: injected failure rendering {BAD_EPISODE}" == failed["error"]
+    assert BAD_EPISODE in failed["label"]
+    assert failed["error"] == f"RuntimeError: injected failure rendering {BAD_EPISODE}"
     assert f"episodes {BAD_EPISODE}..{BAD_EPISODE} kept failing (2 tries)" in caplog.text
     assert report["outputs"] == [] and report["episodes"] == 0

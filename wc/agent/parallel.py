@@ -37,6 +37,7 @@ class TaskResult:
     solver_steps: int
     wall_s: float
     table_top_z: float  # table top height [m], for the lift curves
+    environment: dict[str, str] | None = None  # where its batches ran (None: none ran)
 
 
 def batch_simulator(params: dict[str, Any], task_index: int) -> BatchSimulator:
@@ -65,7 +66,7 @@ def task_attempts(params: dict[str, Any], task_index: int, task_key: str, histor
 def task_result(attempts: TaskAttempts, wall_s: float) -> TaskResult:
     """A finished task's result, for the caller to write and file."""
     return TaskResult(attempts.task.name, attempts.records, attempts.planner.coverage(attempts.task),
-                      attempts.solver_steps, wall_s, attempts.table_top_z)
+                      attempts.solver_steps, wall_s, attempts.table_top_z, attempts.environment)
 
 
 def run_task(params: dict[str, Any], task_index: int, task_key: str, history: Sequence[Outcome],

@@ -20,6 +20,7 @@ import numpy as np
 
 from wc.agent.planner import Planner
 from wc.distributed import LocalExecutor, Unit, WorkerSpec, check_executor, drive
+from wc.reports import environment_info
 from wc.data.store import TrajectoryWriter
 from wc.dynamics import ObjectState
 from wc.scene.config import SceneConfig
@@ -283,6 +284,7 @@ class BatchResult:
     solver_steps: int  # Newton solver steps it took
     wall_s: float
     table_top_z: float  # [m], for the lift curves
+    environment: dict[str, str]  # where it ran (wc.reports.environment_info)
 
 
 class BatchSimulator:
@@ -291,12 +293,13 @@ class BatchSimulator:
     def __init__(self, world: TaskWorld, validate_cfg: ValidateConfig,
                  on_frame: Callable[[], None] | None = None) -> None:
         self.world, self.validate_cfg, self.on_frame = world, validate_cfg, on_frame
+        self.environment = environment_info(world.sim.device)
 
     def __call__(self, specs: list[EpisodeSpec]) -> BatchResult:
         started, steps = time.perf_counter(), self.world.solver_steps
         records = simulate_batch(self.world, specs, self.validate_cfg, self.on_frame)
         return BatchResult(records, self.world.solver_steps - steps, time.perf_counter() - started,
-                           float(self.world.scene.table.top_z))
+                           float(self.world.scene.table.top_z), self.environment)
 
 
 class TaskAttempts:
@@ -314,6 +317,7 @@ class TaskAttempts:
         self.attempts = self.accepted = self.in_flight = self.solver_steps = 0
         self.records: list[EpisodeRecord] = []  # filed, in the order they ran
         self.wall_s, self.table_top_z = 0.0, float("nan")
+        self.environment: dict[str, str] | None = None  # where the last batch ran
 
     def next_unit(self) -> Unit | None:
         if not (self.accepted + self.in_flight < self.wanted and self.attempts < self.max_attempts
@@ -335,7 +339,7 @@ class TaskAttempts:
         self.records += result.records
         self.solver_steps += result.solver_steps
         self.wall_s += result.wall_s
-        self.table_top_z = result.table_top_z
+        self.table_top_z, self.environment = result.table_top_z, result.environment
 
 
 def run_episodes(world: TaskWorld, planner: Planner, task_index: int, wanted: int, max_attempts: int,

@@ -141,15 +141,17 @@ def simulate(params: dict[str, Any], out: str | Path = SIMULATE["out"], report: 
     curves: dict[str, tuple[Any, str]] = {}
     started = time.perf_counter()
     deadline = time.time() + 60.0 * max_minutes if max_minutes > 0 else None
-    failed, steps = None, 0
+    failed, steps, environment = None, 0, None
     with open_executor(agent_cfg.executor, params, uses_cuda(sim_cfg.device, validate_cfg.device)) as executor:
         try:
             with (simulator_store(out, scene_cfg, sim_cfg, tasks, phash, "stages.simulate") as (writer, union),
                   closing(task_results(params, keys, outcomes, agent_cfg.workers, deadline, executor)) as results,
-                  tqdm(results, total=len(tasks), desc="simulate", unit="task") as bar, every_unit(executor, "simulate")):
+                  tqdm(results, total=len(tasks), desc="simulate", unit="task") as bar,
+                  every_unit(executor, "simulate")):
                 for result in bar:
                     per_task[result.task] = _file_task(result, keys[result.task], writer, outcomes, curves)
                     steps += result.solver_steps
+                    environment = environment or result.environment
                     bar.set_postfix(task=result.task, accepted=sum(t["accepted"] for t in per_task.values()))
                     if memory is not None:
                         outcomes.save()  # after every task: an interrupted run keeps what it learnt
@@ -174,7 +176,8 @@ def simulate(params: dict[str, Any], out: str | Path = SIMULATE["out"], report: 
         "tasks": per_task,
         "bag_vertices": len(union.objects["bag"].vertices) if "bag" in union.objects else 0,
         "memory": {"path": str(memory) if memory is not None else None, "outcomes": len(outcomes)},
-        "environment": environment_info(NewtonSimulator.device_name(sim_cfg)),
+        "environment": environment or environment_info(NewtonSimulator.device_name(sim_cfg)
+                                                       if agent_cfg.executor == "local" else "cpu"),  # ray: a worker's
     }
     report = Path(report)
     write_lift_curves(curves, sim_cfg.frame_dt_s, report.with_name("simulate_lift.csv"),

@@ -88,6 +88,7 @@ class ExpandPlans:
         self.infeasible: list[dict[str, Any]] = []
         self.counters: Counters = {}
         self.device: str | None = None  # where the batches ran
+        self.environment: dict[str, str] | None = None
         self._batches: deque[list[tuple[PlannedEpisode, SourceEpisode]]] = deque()
         self.writer: TrajectoryWriter | None = None
         self.rejected_writer: TrajectoryWriter | None = None
@@ -126,7 +127,7 @@ class ExpandPlans:
         self.in_flight -= len(planned)
         self.rollout_s += batch.rollout_s
         self.counters = merged_counters(self.counters, batch.counters)
-        self.device = batch.device
+        self.device, self.environment = batch.device, batch.environment
         for (p, source), r, failure, detail in zip(planned, batch.rollouts, batch.failures, batch.details):
             self.planner.record(p.spec, *(failure or (None, None)))
             self.generated += 1
@@ -207,7 +208,9 @@ def expand(params: dict[str, Any], model_dir: str | Path = EXPAND["model"], stor
                     pass
         except UnitsFailed as err:
             failed = err
-    result = _report(plans, cfg, sources, checkpoint, store, out, rejected_out, phash, executor.report(),
+    where = ((str(local.device), local.environment) if cfg.executor == "local"  # ray: where a unit ran, if one did
+             else (plans.device or cfg.device, plans.environment or environment_info("cpu")))
+    result = _report(plans, cfg, sources, checkpoint, store, out, rejected_out, phash, executor.report(), *where,
                      time.perf_counter() - started)
     write_json_atomic(report, result)
     if failed is not None:
@@ -217,10 +220,9 @@ def expand(params: dict[str, Any], model_dir: str | Path = EXPAND["model"], stor
 
 def _report(plans: ExpandPlans, cfg: ExpandConfig, sources: list[SourceEpisode], checkpoint: dict[str, Any],
             store: Path, out: Path, rejected_out: Path | None, phash: str, executor: dict[str, Any],
-            wall: float) -> dict[str, Any]:
+            device: str, environment: dict[str, str], wall: float) -> dict[str, Any]:
     """The stage's report (reports/expand.json)."""
     accepted, generated, counters = plans.accepted, plans.generated, plans.counters
-    device = plans.device or cfg.device
     untangle = {**counters["untangle"], **({"then": counters["then"]} if "then" in counters else {})} \
         if "untangle" in counters else None
     return {
@@ -261,7 +263,7 @@ def _report(plans: ExpandPlans, cfg: ExpandConfig, sources: list[SourceEpisode],
         "out": str(out),
         "rejected_out": str(rejected_out) if rejected_out is not None else None,
         "params_hash": phash,
-        "environment": environment_info(device),
+        "environment": environment,
     }
 
 

@@ -26,6 +26,7 @@ from wc.expand.plan import PlannedEpisode, source_episodes
 from wc.expand.self_contact import SelfContactSeparation
 from wc.expand.untangle import SelfIntersectionGuard
 from wc.model.layout import scene_layout
+from wc.reports import environment_info
 from wc.scene.config import SceneConfig
 from wc.scene.scene import Scene
 from wc.sim.config import SimConfig
@@ -100,6 +101,7 @@ class ExpandBatch:
     rollout_s: float  # world-model time (the checks not counted)
     counters: Counters  # the projection's counters over this batch alone
     device: str
+    environment: dict[str, str]  # where it ran (wc.reports.environment_info)
 
 
 class ExpandWorker:
@@ -117,6 +119,7 @@ class ExpandWorker:
         self.layout = scene_layout(src, list(scene.objects), list(scene.link_names), model.tag_scale).to(self.device)
         self.projection = joint_projection(cfg, scene, load_section(params, "sim", SimConfig), self.validate_cfg)
         self.predictor = model if cfg.projection == "none" else ContactProjectedPredictor(model, scene, self.projection)
+        self.environment = environment_info(str(self.device))
 
     def __call__(self, planned: list[PlannedEpisode]) -> ExpandBatch:
         counters = projection_counters(self.projection)
@@ -130,7 +133,7 @@ class ExpandWorker:
         details = [_failure_detail(self.scene, r, self.validate_cfg, self.dt, *f) if f else {}
                    for r, f in zip(rollouts, failures)]
         return ExpandBatch(rollouts, failures, details, rollout_s, {k: dict(v) for k, v in counters.items()},
-                           str(self.device))
+                           str(self.device), self.environment)
 
 
 def load_expand_worker(params: dict[str, Any], model_dir: str, store: str) -> ExpandWorker:

@@ -83,7 +83,7 @@ class StoreRender:
         totals = self.totals
         totals["seconds"] = {n: totals["seconds"].get(n, 0.0) + t for n, t in batch.seconds.items()}
         totals["renderers_built"] += batch.renderers_built
-        totals["device"] = batch.device
+        totals["device"], totals["environment"] = batch.device, batch.environment
 
 
 def render_store(src: Path, out: Path, cfg: RenderConfig, executor: LocalExecutor | RayExecutor, worker: WorkerSpec,
@@ -128,7 +128,7 @@ def render(params: dict[str, Any], pairs: Sequence[tuple[str | Path, str | Path]
         worker = WorkerSpec("render", lambda: local)
     else:
         worker = WorkerSpec(f"render:{secrets.token_hex(8)}", RenderWorker, (params,))
-    totals: dict[str, Any] = {"seconds": {}, "renderers_built": 0, "device": cfg.device}
+    totals: dict[str, Any] = {"seconds": {}, "renderers_built": 0, "device": cfg.device, "environment": None}
     started = time.perf_counter()
     outputs, failed = [], None
     with open_executor(cfg.executor, params, uses_cuda(cfg.device)) as executor:
@@ -141,7 +141,8 @@ def render(params: dict[str, Any], pairs: Sequence[tuple[str | Path, str | Path]
     frames = sum(o["frames"] for o in outputs)
     if failed is None:
         write_contact_sheet(RenderedStore(pairs[0][1]), sheet, cfg.sheet_frames, cfg.sheet_episodes)
-    device = totals["device"] if cfg.executor == "ray" else local.device
+    device, environment = ((totals["device"], totals["environment"] or environment_info("cpu")) if cfg.executor == "ray"
+                           else (local.device, local.environment))  # ray: where a unit ran, if one did
     result = {
         "outputs": outputs,
         "episodes": sum(o["episodes"] for o in outputs),
@@ -157,7 +158,7 @@ def render(params: dict[str, Any], pairs: Sequence[tuple[str | Path, str | Path]
         "executor": executor.report(),
         "params_hash": phash,
         "wall_s": wall,
-        "environment": environment_info(device),
+        "environment": environment,
     }
     write_json_atomic(report, result)
     if failed is not None:

@@ -16,6 +16,7 @@ from wc.render.config import RenderConfig
 from wc.render.geometry import episode_geometry
 from wc.render.renderer import EpisodeRenderer
 from wc.render.rig import check_camera_links, render_cameras
+from wc.reports import environment_info
 from wc.scene.config import SceneConfig
 
 
@@ -27,6 +28,7 @@ class RenderBatch:
     seconds: dict[str, float]  # render time per camera
     renderers_built: int  # EpisodeRenderers this unit built (one per new geometry layout)
     device: str
+    environment: dict[str, str]  # where it ran (wc.reports.environment_info)
 
 
 class RenderWorker:
@@ -38,6 +40,7 @@ class RenderWorker:
         self.scene_cfg = load_section(params, "scene", SceneConfig)
         self.cameras = render_cameras(self.scene_cfg.cameras, self.cfg.cameras, self.cfg.width, self.cfg.height)
         self.device = resolve_warp_device(self.cfg.device, "render.device")
+        self.environment = environment_info(self.device)
         self.by_layout: dict[tuple, EpisodeRenderer] = {}
         self._stores: dict[str, TrajectoryStore] = {}
 
@@ -64,4 +67,5 @@ class RenderWorker:
         before, built = self.seconds(), len(self.by_layout)
         views = [self.frames(store, eid) for eid in eids]
         after = self.seconds()
-        return RenderBatch(views, {n: after[n] - before[n] for n in after}, len(self.by_layout) - built, self.device)
+        return RenderBatch(views, {n: after[n] - before[n] for n in after}, len(self.by_layout) - built, self.device,
+                           self.environment)
