@@ -61,7 +61,8 @@ def test_newton_episodes_replay_to_themselves_batched_over_worlds(tmp_path):
     accepted, rejected = report["episodes"]
     assert rejected["worldcontact"] == "blow_up" and accepted["worldcontact"] == accepted["newton"]
     # Newton against itself: another batch order stays near the first rollout; 3 mm of noise moves it further
-    rerun, noisy = report["newton_self_agreement"]["0"], report["newton_self_agreement"]["0.003"]
+    rerun, noisy = report["newton_self_agreement"]
+    assert (rerun["perturb_m"], noisy["perturb_m"]) == (0.0, 0.003)
     assert rerun["plans"] == noisy["plans"] == 2 and rerun["agreement"] == 1.0
     assert rerun["mean_rms_to_first_m"] < 2e-3 < noisy["mean_rms_to_first_m"], (rerun, noisy)
     assert [len(p["newton_repeats"]) for p in report["episodes"]] == [2, 2]

@@ -88,11 +88,11 @@ def _same_verdict(a: str, b: str) -> bool:
 
 def _newton_self_check(world: TaskWorld, plans: list[tuple[TrajectoryStore, str]], checked: list[dict[str, Any]],
                        first_x: list[np.ndarray], validate_cfg: ValidateConfig, frame_dt_s: float,
-                       scales_m: list[float], seed: int) -> dict[str, dict[str, Any]]:
+                       scales_m: list[float], seed: int) -> list[dict[str, Any]]:
     """Newton's verdicts again, per scale: another batch order and perturbed frame-0 positions. Each plan's repeat
     verdict and mean RMS distance to Newton's first rollout go into `checked` (`newton_repeats`); per scale, the
-    share of plans whose verdict stayed the same and the mean of those distances."""
-    out = {}
+    share of plans whose verdict stayed the same and the mean of those distances (a list: a scale may repeat)."""
+    out = []
     for k, scale in enumerate(scales_m):
         order = np.random.default_rng([seed, k]).permutation(len(plans))
         again, again_x = _replay(world, [plans[i] for i in order], validate_cfg, frame_dt_s, scale, seed + 1 + k)
@@ -102,8 +102,8 @@ def _newton_self_check(world: TaskWorld, plans: list[tuple[TrajectoryStore, str]
             checked[i].setdefault("newton_repeats", []).append({"perturb_m": scale, "newton": repeat["newton"],
                                                                 "mean_rms_to_first_m": drift[-1]})
             same.append(_same_verdict(checked[i]["newton"], repeat["newton"]))
-        out[f"{scale:g}"] = {"perturb_m": scale, "plans": len(same), "agreement": _share(same),
-                             "flips": len(same) - sum(same), "mean_rms_to_first_m": float(np.mean(drift))}
+        out.append({"perturb_m": scale, "plans": len(same), "agreement": _share(same), "flips": len(same) - sum(same),
+                    "mean_rms_to_first_m": float(np.mean(drift))})
     return out
 
 
@@ -163,5 +163,5 @@ def teacher_check_summary(report: dict[str, Any]) -> str:
         return f"teacher check: {report['note']}"
     return (f"teacher check: {report['plans']} plans, agreement {report['agreement']:.2f}, precision "
             f"{report['precision']}, recall {report['recall']}, mean RMS {report['mean_rms_error_m'] * 1000:.1f} mm; "
-            f"{report['confusion']}" + "".join(f"; Newton against itself at {k} m: agreement {v['agreement']:.2f}"
-                                               for k, v in report.get("newton_self_agreement", {}).items()))
+            f"{report['confusion']}" + "".join(f"; Newton against itself at {r['perturb_m']:g} m: agreement "
+                                               f"{r['agreement']:.2f}" for r in report.get("newton_self_agreement", [])))
