@@ -3,6 +3,9 @@
 # one task in flight, ray.gpus_per_unit 1/N, WORLDS Newton worlds each), beside the local executor in-process;
 # scripts/gpu/issue24_bench.py does the work and writes $OUT_DIR/simulate_ray_$NAME.json and .md.
 #   bash scripts/gpu/issue24_bench.sh                     # GPU: workers 1 4 8, 8 worlds each, 1 min per row (~8 min)
+# Give it the whole 10-minute call: on a bare H100 (2026-11-26) WORKERS="1 4" MINUTES=0.6 did not finish its warm-up
+# and first rows in 290 s (a lift_handle batch runs ~1 min, and each Ray worker imports and builds its world first).
+# The JSON and table are rewritten after every row, so a run cut short keeps the rows it finished.
 #   DEVICE=cpu WORKERS="1 2" WORLDS=1 TASK=bag_drop MINUTES=0.5 NAME=cpu OUT_DIR=reports \
 #     EXTRA="--set tasks.bag_drop.duration_s=0.4" bash scripts/gpu/issue24_bench.sh    # the tiny CPU run
 # On the offline GPU machine ray must be importable: its wheels travel with the others (pack-wheels.sh ray==2.60.0
