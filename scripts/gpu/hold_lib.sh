@@ -19,3 +19,14 @@ unpack_wheels() {
   python -c "$1" || exit 1
   nvidia-smi --query-gpu=name,memory.used --format=csv
 }
+# step TEXT: a timed line in the background job's progress log
+step() { echo "$(date +%T) $*" >> $R/steps.log; }
+# fresh_lift_data EPISODES ATTEMPTS SIM_MINUTES VAL TEST: lift_handle episodes simulated with Newton (WORLDS worlds per
+# batch, default 64) and validated into /tmp/run/store.zarr (issue19_hold.sh data), VAL + TEST whole episodes held out
+fresh_lift_data() {
+  export TASKS="[lift_handle]" EPISODES=$1 ATTEMPTS=$2 SIM_MINUTES=$3 VAL_PER_TASK=$4 TEST_PER_TASK=$5 \
+    WORLDS=${WORLDS:-64} WORKERS=1 TRAIN=0
+  step "data start"
+  bash scripts/gpu/issue19_hold.sh data > $R/data.log 2>&1
+  step "data rc=$? $(tail -c 300 $R/data.log | tr '\r\n' '  ')"
+}

@@ -4,13 +4,9 @@
 # positions + N(0, s^2) for each s in PERTURB): how often Newton agrees with itself bounds what any model can reach.
 # Run in the background (hold_lib.sh `background`) after the wheels are unpacked; progress in /tmp/run/steps.log.
 cd "$(dirname "$0")/../.."
-R=/tmp/run; mkdir -p $R/out; export OUT=$R/out
-step() { echo "$(date +%T) $*" >> $R/steps.log; }
-export TASKS="[lift_handle]" EPISODES=${EPISODES:-64} ATTEMPTS=${ATTEMPTS:-64} WORLDS=${WORLDS:-64} WORKERS=1 TRAIN=0 \
-  SIM_MINUTES=${SIM_MINUTES:-2} VAL_PER_TASK=2 TEST_PER_TASK=2
-step "data start"
-bash scripts/gpu/issue19_hold.sh data > $R/data.log 2>&1
-step "data rc=$? $(tail -c 300 $R/data.log | tr '\r\n' '  ')"
+export OUT=/tmp/run/out
+source scripts/gpu/hold_lib.sh
+fresh_lift_data ${EPISODES:-64} ${ATTEMPTS:-64} ${SIM_MINUTES:-2} 2 2
 source scripts/gpu/issue19_env.sh
 TAG=ceiling MODEL=models/pretrained/worldcontact-lift-handle SELF_CONTACT=true EXPAND_MINUTES=1.0 EXPAND_BATCH=64 \
   SKIP_TEACHER=1 SKIP_EVAL=1 EXPAND_TIMEOUT=500 bash scripts/gpu/issue19_expand.sh > $R/expand.log 2>&1

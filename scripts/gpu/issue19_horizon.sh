@@ -8,15 +8,11 @@
 # per verdict, and 100-frame rollouts of the held-out test episodes against constant velocity. Run in the background
 # (hold_lib.sh `background`) after the wheels are unpacked; progress in /tmp/run/steps.log, reports in /tmp/run/out.
 cd "$(dirname "$0")/../.."
-R=/tmp/run; mkdir -p $R/out; export OUT=$R/out
-step() { echo "$(date +%T) $*" >> $R/steps.log; }
+export OUT=/tmp/run/out
+source scripts/gpu/hold_lib.sh
 STAGE1=${STAGE1:-/tmp/stage1}
 SHIPPED=models/pretrained/worldcontact-lift-handle
-export TASKS="[lift_handle]" EPISODES=${EPISODES:-128} ATTEMPTS=${ATTEMPTS:-256} WORLDS=${WORLDS:-64} WORKERS=1 TRAIN=0 \
-  SIM_MINUTES=${SIM_MINUTES:-4} VAL_PER_TASK=4 TEST_PER_TASK=8
-step "data start"
-bash scripts/gpu/issue19_hold.sh data > $R/data.log 2>&1
-step "data rc=$? $(tail -c 300 $R/data.log | tr '\r\n' '  ')"
+fresh_lift_data ${EPISODES:-128} ${ATTEMPTS:-256} ${SIM_MINUTES:-4} 4 8
 source scripts/gpu/issue19_env.sh
 python -m stages.validate --params params.yaml "${VAL_SETS[@]}" --set validate.device=cuda \
   --set validate.train_on_task_failures=false --raw $R/raw.zarr --out $R/store_nofail.zarr \
