@@ -11,7 +11,10 @@ hierarchical compression) and rollout speed, beside the Newton source simulator 
    (`wc.train.loop.optimisation_step`, bf16 autocast as params say); median of `--steps` after 2
    warm-up steps; peak GPU memory.
 3. Rollout: the trained-architecture model (random weights: speed does not depend on them) rolls
-   out `--rollout-frames` frames without gradients, for 1 scene and for `--batch` scenes at once.
+   out `--rollout-frames` frames without gradients, for 1 scene and for `--batch` scenes at once; and once more
+   through the `wc.dynamics.Dynamics` protocol the Newton row is timed through (`LearnedDynamics.rollout_batch`:
+   numpy states and actions in, the recorded poses, a finite check per frame, (x, v) out), so the two rows of
+   `rollout_protocol` compare Newton and WorldContact through one call and show the protocol's own cost.
 Device synchronised before every clock read; no disk I/O or rendering inside the timed parts.
 """
 
@@ -33,7 +36,11 @@ from wc.agent.planner import CoveragePlanner
 from wc.agent.runner import episode_seed
 from wc.config import add_params_arguments, load_section, read_params
 from wc.data.store import TrajectoryStore, TrajectoryWriter
+from wc.dynamics import ObjectState
+from wc.eval.predictors import WorldContactPredictor
 from wc.model.config import ModelConfig
+from wc.model.learned_dynamics import LearnedDynamics
+from wc.model.prescribed_inputs import RecordedInputs
 from wc.model.layout import SceneLayout, scene_layout
 from wc.model.rollout import rollout
 from wc.model.worldcontact import WorldContact
@@ -153,6 +160,32 @@ def time_rollout(store: TrajectoryStore, model_cfg: ModelConfig, frames: int, ba
             "finite": bool(torch.isfinite(xs).all())}
 
 
+@torch.no_grad()
+def time_protocol_rollout(store: TrajectoryStore, model_cfg: ModelConfig, cfg: TrainConfig, frames: int, batch: int,
+                          device: torch.device) -> dict[str, Any]:
+    """As `time_rollout` (fp32), through `LearnedDynamics.rollout_batch`: the call Newton's row is timed through."""
+    phase, model, layout = episode_model(store, model_cfg, device)
+    frames = min(frames, phase.stop - 1)
+    a = read_phase_window(store, phase, 0, frames + 1)
+    actions = store.read_episode(phase.episode, ("action",))["action"][phase.start:phase.start + frames + 1]
+    dynamics = LearnedDynamics(WorldContactPredictor(model, False, cfg), layout,
+                               RecordedInputs(actions, a["poses"], layout.bodies), store.dt, device)
+    initial = [ObjectState(a["x"][0], a["v"][0])] * batch
+    walls = []
+    for k in range(3):
+        sync(device)
+        t = time.perf_counter()
+        out = dynamics.rollout_batch(initial, [actions] * batch)
+        sync(device)
+        if k:
+            walls.append(time.perf_counter() - t)
+    wall = statistics.median(walls)
+    return {"batch": batch, "frames": frames, "compress": model_cfg.compress, "autocast_bf16": False,
+            "call": "Dynamics.rollout_batch", "wall_s_median": wall, "simulated_s_per_wall_s": frames * store.dt / wall,
+            "simulated_s_per_wall_s_aggregate": batch * frames * store.dt / wall,
+            "finite": bool(all(np.isfinite(x).all() for x, _ in out))}
+
+
 def markdown(report: dict[str, Any]) -> str:
     env, sim = report["environment"], report["simulator"]
     lines = [f"# WorldContact speed: bag lift at {sim['bag_vertices']:,} bag vertices", "",
@@ -176,6 +209,12 @@ def markdown(report: dict[str, Any]) -> str:
         lines.append(f"| {r['batch']} | {'yes' if r['compress'] else 'no'} | {'yes' if r['autocast_bf16'] else 'no'} | "
                      f"{r['simulated_s_per_wall_s']:.3f} | {r['simulated_s_per_wall_s_aggregate']:.3f} | "
                      f"{r['simulated_s_per_wall_s_aggregate'] / sim['simulated_s_per_wall_s']:.1f} |")
+    lines += ["", "## Through the Dynamics protocol (Newton's row above is timed through the same call; fp32)", "",
+              "| scenes | compression | simulated s / wall s per scene | aggregate | x simulator |", "|---|---|---|---|---|"]
+    for r in report.get("rollout_protocol", []):
+        lines.append(f"| {r['batch']} | {'yes' if r['compress'] else 'no'} | {r['simulated_s_per_wall_s']:.3f} | "
+                     f"{r['simulated_s_per_wall_s_aggregate']:.3f} | "
+                     f"{r['simulated_s_per_wall_s_aggregate'] / sim['simulated_s_per_wall_s']:.1f} |")
     return "\n".join(lines) + "\n"
 
 
@@ -195,7 +234,7 @@ def main(argv: list[str] | None = None) -> None:
     device = torch.device(cfg.device)
     out = Path(args.out)
     report: dict[str, Any] = {"params": args.params, "environment": environment_info(str(device)), "training": [],
-                              "rollout": []}
+                              "rollout": [], "rollout_protocol": []}
     with tempfile.TemporaryDirectory() as tmp:
         episode = Path(args.episode) if args.episode else Path(tmp) / "episode.zarr"
         report["simulator"] = simulate_episode(params, episode)
@@ -214,6 +253,10 @@ def main(argv: list[str] | None = None) -> None:
             for batch, autocast in ((1, False), (1, cfg.autocast_bf16), (args.batch, cfg.autocast_bf16)):
                 report["rollout"].append(time_rollout(store, mc, args.rollout_frames, batch, autocast, device))
                 print(report["rollout"][-1], flush=True)
+                write_json_atomic(out, report)
+            for batch in (1, args.batch):
+                report["rollout_protocol"].append(time_protocol_rollout(store, mc, cfg, args.rollout_frames, batch, device))
+                print(report["rollout_protocol"][-1], flush=True)
                 write_json_atomic(out, report)
     write_json_atomic(out, report)
     out.with_suffix(".md").write_text(markdown(report))
