@@ -47,10 +47,11 @@ def _generated(path: Path, task: str, limit: int | None) -> list[tuple[Trajector
 
 
 def _replay(world: TaskWorld, plans: list[tuple[TrajectoryStore, str]], validate_cfg: ValidateConfig,
-            frame_dt_s: float, perturb_m: float = 0.0, seed: int = 0) -> tuple[list[dict[str, Any]], list[np.ndarray]]:
+            frame_dt_s: float, perturb_m: float = 0.0, seed: int = 0, keep_x: bool = False
+            ) -> tuple[list[dict[str, Any]], list[np.ndarray]]:
     """Both verdicts and the per-frame RMS distance of each plan, Newton rolling out sim.worlds plans at a time
     (a batch runs to its longest plan; each plan is judged on its own frames), from frame-0 positions with
-    N(0, perturb_m^2) noise (seeded) added. Also returns Newton's positions of each plan."""
+    N(0, perturb_m^2) noise (seeded) added. Also returns Newton's positions of each plan if `keep_x` (else [])."""
     task, out, newton_x = world.task, [], []
     rng = np.random.default_rng(seed)
     for first in tqdm(range(0, len(plans), world.sim.worlds), desc="teacher check", unit="batch"):
@@ -67,7 +68,8 @@ def _replay(world: TaskWorld, plans: list[tuple[TrajectoryStore, str]], validate
             newton = judge(world, spec, x, v, ep["action"], world.scene.link_poses(ep["action"]), validate_cfg,
                            frame_dt_s)
             rms = np.sqrt(np.square(x - ep["x"][:frames]).sum(-1).mean(-1))  # (T,) m
-            newton_x.append(x)
+            if keep_x:
+                newton_x.append(x)
             out.append({"episode": eid, "store": str(store.path), "parent": attrs.get("parent"),
                         "worldcontact": "accepted" if attrs["accepted"] else str(attrs["first_failure"]),
                         "newton": "accepted" if newton is None else newton[0],
@@ -95,7 +97,7 @@ def _newton_self_check(world: TaskWorld, plans: list[tuple[TrajectoryStore, str]
     out = []
     for k, scale in enumerate(scales_m):
         order = np.random.default_rng([seed, k]).permutation(len(plans))
-        again, again_x = _replay(world, [plans[i] for i in order], validate_cfg, frame_dt_s, scale, seed + 1 + k)
+        again, again_x = _replay(world, [plans[i] for i in order], validate_cfg, frame_dt_s, scale, seed + 1 + k, True)
         same, drift = [], []
         for i, repeat, x in zip(order, again, again_x):
             drift.append(float(np.sqrt(np.square(x - first_x[i]).sum(-1).mean(-1)).mean()))
@@ -128,7 +130,7 @@ def teacher_check(params: dict[str, Any], store_path: str | Path, limit: int | N
                 "note": f"no generated {cfg.task!r} episode in the stores", "environment": environment_info("cpu")}
     world = build_task_world(load_section(params, "scene", SceneConfig), sim_cfg, get_task(cfg.task, params))
     started = time.perf_counter()
-    checked, newton_x = _replay(world, plans, validate_cfg, sim_cfg.frame_dt_s)
+    checked, newton_x = _replay(world, plans, validate_cfg, sim_cfg.frame_dt_s, keep_x=bool(newton_perturb_m))
     self_check = _newton_self_check(world, plans, checked, newton_x, validate_cfg, sim_cfg.frame_dt_s,
                                     newton_perturb_m or [], cfg.seed)
     confusion: dict[str, int] = {}
