@@ -33,7 +33,8 @@ class KinematicInputs:
 
     def poses(self, actions: np.ndarray, first: int = 0) -> np.ndarray:
         links = self.scene.link_poses(actions)  # (B, T, L, 7); the frame index does not matter
-        env = np.broadcast_to(self.scene.env_poses(), (*links.shape[:2], *self.scene.env_poses().shape))
+        env = self.scene.env_poses()
+        env = np.broadcast_to(env, (*links.shape[:2], *env.shape))
         return np.concatenate([links, env], axis=2)
 
 
