@@ -6,10 +6,10 @@ two verdicts agree, how often Newton accepts what WorldContact accepted (`precis
 accepted what Newton accepts (`recall`: needs the rejected episodes, which the expand stage keeps in a second
 store) and how far the two trajectories drift apart per frame.
 
-Newton against itself (`newton_perturb_m`): for each listed scale s, Newton replays every plan once more, in another
-batch order (VBD's few iterations do not converge, so a plan's neighbours in the batch move it slightly) and from its
-frame-0 positions with N(0, s^2) added to each coordinate. How often Newton's verdict then stays the same is the
-agreement a perfect model could reach on these plans: the teacher check's ceiling.
+Newton against itself (`newton_perturb_m`, wc/agent/replay.py): for each listed scale s, Newton replays every plan
+once more, in another batch order (VBD's few iterations do not converge, so a plan's neighbours in the batch move it
+slightly) and from its frame-0 positions with N(0, s^2) added to each coordinate. How often Newton's verdict then
+stays the same is the agreement a perfect model could reach on these plans: the teacher check's ceiling.
 
     python -m stages.teacher_check [--params params.yaml] [--store data/expanded/trajectories.zarr]
         [--rejected data/expanded/rejected.zarr] [--report reports/teacher_check.json] [--limit N]
@@ -23,12 +23,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from tqdm import tqdm
 
-from wc.agent.runner import TaskWorld, build_task_world, execute, judge
+from wc.agent.replay import Plan, Replay, replay, same_verdict, self_agreement, share
+from wc.agent.runner import build_task_world
 from wc.config import load_section
 from wc.data.store import TrajectoryStore
-from wc.dynamics import ObjectState
 from wc.expand.config import ExpandConfig
 from wc.paths import TEACHER_CHECK
 from wc.reports import environment_info, write_json_atomic
@@ -46,67 +45,22 @@ def _generated(path: Path, task: str, limit: int | None) -> list[tuple[Trajector
     return [(store, eid) for eid in store.episodes_where(task=task, source="worldcontact")[:limit]]
 
 
-def _replay(world: TaskWorld, plans: list[tuple[TrajectoryStore, str]], validate_cfg: ValidateConfig,
-            frame_dt_s: float, perturb_m: float = 0.0, seed: int = 0, keep_x: bool = False
-            ) -> tuple[list[dict[str, Any]], list[np.ndarray]]:
-    """Both verdicts and the per-frame RMS distance of each plan, Newton rolling out sim.worlds plans at a time
-    (a batch runs to its longest plan; each plan is judged on its own frames), from frame-0 positions with
-    N(0, perturb_m^2) noise (seeded) added. Also returns Newton's positions of each plan if `keep_x` (else [])."""
-    task, out, newton_x = world.task, [], []
-    rng = np.random.default_rng(seed)
-    for first in tqdm(range(0, len(plans), world.sim.worlds), desc="teacher check", unit="batch"):
-        batch = plans[first:first + world.sim.worlds]
-        eps = [store.read_episode(eid, ("x", "v", "action")) for store, eid in batch]
-        starts = [ObjectState((ep["x"][0] + rng.normal(0.0, perturb_m, ep["x"][0].shape)).astype(np.float32)
-                              if perturb_m > 0 else ep["x"][0], ep["v"][0]) for ep in eps]
-        rollouts = execute(world, starts, [ep["action"] for ep in eps], None)[0]
-        for (store, eid), ep, (x, v) in zip(batch, eps, rollouts):
-            attrs, frames = store.episode_attrs(eid), len(ep["action"])
-            x, v = x[:frames], v[:frames]
-            spec = EpisodeSpec(task.name, int(attrs["seed"]), int(attrs["cell"]), float(attrs["speed"]),
-                               float(attrs["amplitude"]))
-            newton = judge(world, spec, x, v, ep["action"], world.scene.link_poses(ep["action"]), validate_cfg,
-                           frame_dt_s)
-            rms = np.sqrt(np.square(x - ep["x"][:frames]).sum(-1).mean(-1))  # (T,) m
-            if keep_x:
-                newton_x.append(x)
-            out.append({"episode": eid, "store": str(store.path), "parent": attrs.get("parent"),
-                        "worldcontact": "accepted" if attrs["accepted"] else str(attrs["first_failure"]),
-                        "newton": "accepted" if newton is None else newton[0],
-                        "newton_failure_frame": None if newton is None else int(newton[1]),
-                        "rms_error_m": [float(e) for e in rms], "final_rms_error_m": float(rms[-1]),
-                        "mean_rms_error_m": float(rms.mean())})
-    return out, newton_x
+def _plan(store: TrajectoryStore, eid: str, task: str) -> Plan:
+    """A generated episode's plan: its frame-0 state and actions, its trajectory as the replay's reference."""
+    ep, attrs = store.read_episode(eid, ("x", "v", "action")), store.episode_attrs(eid)
+    spec = EpisodeSpec(task, int(attrs["seed"]), int(attrs["cell"]), float(attrs["speed"]),
+                       float(attrs["amplitude"]))
+    return Plan(spec, ep["x"][0], ep["v"][0], ep["action"], reference_x=ep["x"])
 
 
-def _share(hits: list[bool]) -> float | None:
-    return sum(hits) / len(hits) if hits else None
-
-
-def _same_verdict(a: str, b: str) -> bool:
-    """Two verdicts agree: both accept, or both reject (for whatever reason)."""
-    return a == b or "accepted" not in (a, b)
-
-
-def _newton_self_check(world: TaskWorld, plans: list[tuple[TrajectoryStore, str]], checked: list[dict[str, Any]],
-                       first_x: list[np.ndarray], validate_cfg: ValidateConfig, frame_dt_s: float,
-                       scales_m: list[float], seed: int) -> list[dict[str, Any]]:
-    """Newton's verdicts again, per scale: another batch order and perturbed frame-0 positions. Each plan's repeat
-    verdict and mean RMS distance to Newton's first rollout go into `checked` (`newton_repeats`); per scale, the
-    share of plans whose verdict stayed the same and the mean of those distances (a list: a scale may repeat)."""
-    out = []
-    for k, scale in enumerate(scales_m):
-        order = np.random.default_rng([seed, k]).permutation(len(plans))
-        again, again_x = _replay(world, [plans[i] for i in order], validate_cfg, frame_dt_s, scale, seed + 1 + k, True)
-        same, drift = [], []
-        for i, repeat, x in zip(order, again, again_x):
-            drift.append(float(np.sqrt(np.square(x - first_x[i]).sum(-1).mean(-1)).mean()))
-            checked[i].setdefault("newton_repeats", []).append({"perturb_m": scale, "newton": repeat["newton"],
-                                                                "mean_rms_to_first_m": drift[-1]})
-            same.append(_same_verdict(checked[i]["newton"], repeat["newton"]))
-        out.append({"perturb_m": scale, "plans": len(same), "agreement": _share(same), "flips": len(same) - sum(same),
-                    "mean_rms_to_first_m": float(np.mean(drift))})
-    return out
+def _checked(store: TrajectoryStore, eid: str, newton: Replay) -> dict[str, Any]:
+    """One plan's row of the report: both verdicts and the per-frame RMS distance between the two rollouts."""
+    attrs, rms = store.episode_attrs(eid), newton.rms_error_m
+    return {"episode": eid, "store": str(store.path), "parent": attrs.get("parent"),
+            "worldcontact": "accepted" if attrs["accepted"] else str(attrs["first_failure"]),
+            "newton": newton.verdict, "newton_failure_frame": newton.failure_frame,
+            "rms_error_m": [float(e) for e in rms], "final_rms_error_m": float(rms[-1]),
+            "mean_rms_error_m": float(rms.mean())}
 
 
 def teacher_check(params: dict[str, Any], store_path: str | Path, limit: int | None = None,
@@ -130,18 +84,24 @@ def teacher_check(params: dict[str, Any], store_path: str | Path, limit: int | N
                 "note": f"no generated {cfg.task!r} episode in the stores", "environment": environment_info("cpu")}
     world = build_task_world(load_section(params, "scene", SceneConfig), sim_cfg, get_task(cfg.task, params))
     started = time.perf_counter()
-    checked, newton_x = _replay(world, plans, validate_cfg, sim_cfg.frame_dt_s, keep_x=bool(newton_perturb_m))
-    self_check = _newton_self_check(world, plans, checked, newton_x, validate_cfg, sim_cfg.frame_dt_s,
-                                    newton_perturb_m or [], cfg.seed)
+    replays = [_plan(store, eid, cfg.task) for store, eid in plans]
+    newton = replay(world, replays, validate_cfg, sim_cfg.frame_dt_s, keep_x=bool(newton_perturb_m),
+                    desc="teacher check")
+    checked = [_checked(store, eid, r) for (store, eid), r in zip(plans, newton)]
+    self_check, repeats = self_agreement(world, replays, newton, validate_cfg, sim_cfg.frame_dt_s,
+                                         newton_perturb_m or [], cfg.seed)
+    for row, plan_repeats in zip(checked, repeats):
+        if plan_repeats:
+            row["newton_repeats"] = plan_repeats
     confusion: dict[str, int] = {}
     for p in checked:
         key = f"worldcontact {p['worldcontact']} / newton {p['newton']}"
         confusion[key] = confusion.get(key, 0) + 1
     return {**base, "plans": len(checked),
-            "agreement": _share([_same_verdict(p["worldcontact"], p["newton"]) for p in checked]),
+            "agreement": share([same_verdict(p["worldcontact"], p["newton"]) for p in checked]),
             "newton_self_agreement": self_check,
-            "precision": _share([p["newton"] == "accepted" for p in checked if p["worldcontact"] == "accepted"]),
-            "recall": _share([p["worldcontact"] == "accepted" for p in checked if p["newton"] == "accepted"])
+            "precision": share([p["newton"] == "accepted" for p in checked if p["worldcontact"] == "accepted"]),
+            "recall": share([p["worldcontact"] == "accepted" for p in checked if p["newton"] == "accepted"])
             if rejected_path is not None else None,
             "confusion": confusion, "mean_rms_error_m": float(np.mean([p["mean_rms_error_m"] for p in checked])),
             "episodes": checked, "wall_s": time.perf_counter() - started, "worlds": sim_cfg.worlds,
