@@ -85,6 +85,14 @@ def agreement_with_most_iterated(rows: list[dict[str, Any]], verdicts: list[dict
         row["most_iterated"] = rows[best]["iterations"]
 
 
+def _flips(row: dict[str, Any]) -> str:
+    """The verdict changes of a row's re-runs, summed ('-' for reports written before they were recorded)."""
+    flips = Counter()
+    for again in row["self_agreement"]:
+        flips.update(again.get("flipped", {}))
+    return ", ".join(f"{k} {n}" for k, n in sorted(flips.items())) if flips or "flipped" in again else "-"
+
+
 def markdown(report: dict[str, Any]) -> str:
     env = report["environment"]
     scales = report["perturb_m"]
@@ -96,34 +104,42 @@ def markdown(report: dict[str, Any]) -> str:
              "over the episode of the RMS vertex distance between the two.", "",
              "| iterations | substeps | plans | accepted | " + " | ".join(
                  f"agreement / RMS mm, s = {s:g} m" for s in scales)
-             + " | agrees with most iterated | rollout s per episode |",
-             "|---|---|---|---|" + "---|" * len(scales) + "---|---|"]
+             + " | agrees with most iterated | rollout s per episode | flips (first -> re-run) |",
+             "|---|---|---|---|" + "---|" * len(scales) + "---|---|---|"]
     for r in report["settings"]:
         cells = [f"{a['agreement']:.2f} / {a['mean_rms_to_first_m'] * 1e3:.1f}" for a in r["self_agreement"]]
         most = r.get("agreement_with_most_iterated")
         lines.append(f"| {r['iterations']} | {r['substeps']} | {r['plans']} | {r['accepted']:.2f} | "
                      + " | ".join(cells) + f" | {'-' if most is None else f'{most:.2f}'} "
-                     f"| {r['rollout_s_per_episode']:.2f} |")
+                     f"| {r['rollout_s_per_episode']:.2f} | {_flips(r)} |")
     return "\n".join(lines) + "\n"
 
 
 def chart(report: dict[str, Any], path: Path) -> None:
-    """Agreement with itself (per noise scale) against rollout seconds per episode, one point per setting."""
+    """Against rollout seconds per episode, one point per setting (in order of cost): Newton's verdict agreement with
+    its first rollout and the mean RMS distance to it, one line per noise scale."""
     plt = pyplot()
-    fig, ax = plt.subplots(figsize=(6, 4))
-    rows = report["settings"]
+    rows = sorted(report["settings"], key=lambda r: r["rollout_s_per_episode"])
+    cost = [r["rollout_s_per_episode"] for r in rows]
+    fig, (agree, drift) = plt.subplots(1, 2, figsize=(10, 4))
     for k, scale in enumerate(report["perturb_m"]):
-        ax.plot([r["rollout_s_per_episode"] for r in rows], [r["self_agreement"][k]["agreement"] for r in rows],
-                "o-", label=f"re-run, noise {scale:g} m")
-    for r in rows:
-        ax.annotate(f"{r['iterations']} it", (r["rollout_s_per_episode"], r["self_agreement"][0]["agreement"]),
-                    textcoords="offset points", xytext=(4, 4), fontsize=8)
-    ax.set_xlabel(f"Newton rollout wall s per episode ({report['environment']['device']})")
-    ax.set_ylabel("verdict agreement with its first rollout")
-    ax.set_ylim(0, 1.05)
-    ax.set_title(f"Newton against itself: {report['task']}")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
+        label = f"re-run {k + 1}, frame-0 noise {scale:g} m"
+        agree.plot(cost, [r["self_agreement"][k]["agreement"] for r in rows], "o-", label=label)
+        drift.plot(cost, [r["self_agreement"][k]["mean_rms_to_first_m"] * 1e3 for r in rows], "o-", label=label)
+    for r, c in zip(rows, cost):
+        for ax, y in ((agree, r["self_agreement"][0]["agreement"]),
+                      (drift, r["self_agreement"][0]["mean_rms_to_first_m"] * 1e3)):
+            ax.annotate(f"{r['iterations']} it", (c, y), textcoords="offset points", xytext=(4, 4), fontsize=8)
+    agree.set_ylabel("verdict agreement with the first rollout")
+    agree.set_ylim(0, 1.05)
+    drift.set_ylabel("mean RMS distance to the first rollout [mm]")
+    drift.set_ylim(bottom=0)
+    for ax in (agree, drift):
+        ax.set_xlabel(f"Newton rollout wall s per episode ({report['environment']['device']})")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.suptitle(f"Newton against itself: {report['task']}, {rows[0]['plans']} plans, VBD iterations per substep")
+    fig.tight_layout()
     save_figure_atomic(fig, path)
 
 

@@ -10,6 +10,7 @@ the same: the ceiling of any check that scores a model against one Newton replay
 
 from __future__ import annotations
 
+from collections import Counter
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -95,6 +96,8 @@ def self_agreement(world: TaskWorld, plans: list[Plan], first: list[Replay], val
             drift.append(float(repeat.rms_error_m.mean()))
             repeats[i].append({"perturb_m": scale, "newton": repeat.verdict, "mean_rms_to_first_m": drift[-1]})
             same.append(same_verdict(first[i].verdict, repeat.verdict))
+        flipped = Counter(f"{first[i].verdict} -> {r.verdict}" for i, r, ok in zip(order, again, same) if not ok)
         summary.append({"perturb_m": scale, "plans": len(same), "agreement": share(same),
-                        "flips": len(same) - sum(same), "mean_rms_to_first_m": float(np.mean(drift))})
+                        "flips": len(same) - sum(same), "flipped": dict(flipped),
+                        "mean_rms_to_first_m": float(np.mean(drift))})
     return summary, repeats
