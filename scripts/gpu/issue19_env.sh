@@ -5,7 +5,10 @@
 # Packed wheels (warp, newton, zarr, trimesh) on PYTHONPATH; state lives in /tmp/run. The acceptance checks run on the
 # GPU too (validate.device): on the host they cost more than the simulation (reports/check_cost_cpu.md). No
 # torch.compile by default: it recompiled for every layout of multi-task data (~250 s a step on the H100).
+# SIM_ITERATIONS: Newton's VBD iterations per substep for the data and the teacher check (params.yaml's 5 by default;
+# reports/gpu/newton_convergence_h100.md: at 5 about half the lifts slip out of the pads, at 10 and more none do)
 SIM_SETS=(--set sim.device=cuda --set validate.device=cuda --set sim.worlds=${WORLDS:-32} --set agent.workers=${WORKERS:-1}
+  --set sim.iterations=${SIM_ITERATIONS:-5}
   --set "agent.tasks=${TASKS:-[lift_handle, grasp_handle, shake, lift_two_arms, place, release_drop]}"
   --set agent.episodes_per_task=${EPISODES:-29} --set agent.max_attempts_per_task=${ATTEMPTS:-96})
 VAL_SETS=(--set validate.val_per_task=${VAL_PER_TASK:-2} --set validate.test_per_task=${TEST_PER_TASK:-2} --set validate.train_on_task_failures=${TASK_FAILURES:-true})
@@ -20,6 +23,6 @@ TRAIN_SETS=(
 # the expansion and teacher check on the GPU (issue19_expand.sh)
 EXP_SETS=(--set expand.target_trajectories=${TARGET:-150} --set expand.max_minutes=${EXPAND_MINUTES:-3.5} --set expand.max_attempts=${ATTEMPTS_EXPAND:-600}
   --set expand.batch_size=${EXPAND_BATCH:-64} --set expand.device=cuda --set validate.device=cuda --set sim.device=cuda
-  --set sim.worlds=32 --set expand.pad_carry=${PAD_CARRY:-false} --set expand.untangle=${UNTANGLE:-bounded+rollback}
+  --set sim.worlds=32 --set sim.iterations=${SIM_ITERATIONS:-5} --set expand.pad_carry=${PAD_CARRY:-false} --set expand.untangle=${UNTANGLE:-bounded+rollback}
   --set expand.self_contact=${SELF_CONTACT:-false} --set expand.untangle_share=${SHARE:-0.8} ${EXTRA_EXP_SETS:-})
 mkdir -p /tmp/run

@@ -15,7 +15,7 @@ fi
 if [ "${SKIP_TEACHER:-0}" != 1 ]; then
 timeout ${TEACHER_TIMEOUT:-240} python -m stages.teacher_check --params params.yaml "${EXP_SETS[@]}" \
   --store /tmp/run/expanded_$TAG.zarr --rejected /tmp/run/rejected_$TAG.zarr --limit ${TEACHER:-40} \
-  --report $OUT/teacher_check_$TAG.json 2>&1 | tr '\r' '\n' | grep -v "it/s\]$" | tail -4
+  ${TEACHER_PERTURB:+--newton-perturb-m $TEACHER_PERTURB} --report $OUT/teacher_check_$TAG.json 2>&1 | tr '\r' '\n' | grep -v "it/s\]$" | tail -4
 fi
 if [ "${SKIP_EVAL:-0}" != 1 ]; then
 timeout ${EVAL_TIMEOUT:-200} python -m stages.evaluate --params params.yaml --store /tmp/run/store.zarr \
