@@ -66,6 +66,8 @@ def test_newton_episodes_replay_to_themselves_batched_over_worlds(tmp_path):
     assert rerun["plans"] == noisy["plans"] == 2 and rerun["agreement"] == 1.0
     assert rerun["mean_rms_to_first_m"] < 2e-3 < noisy["mean_rms_to_first_m"], (rerun, noisy)
     assert [len(p["newton_repeats"]) for p in report["episodes"]] == [2, 2]
+    accepts = sum(p["newton"] == "accepted" for p in report["episodes"]) / 2
+    assert report["newton_accepts"] == accepts and report["constant_agreement"] == max(accepts, 1 - accepts)
     newton_accepts = [p["worldcontact"] == "accepted" for p in report["episodes"] if p["newton"] == "accepted"]
     assert report["recall"] == (sum(newton_accepts) / len(newton_accepts) if newton_accepts else None)
 

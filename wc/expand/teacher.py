@@ -68,6 +68,8 @@ def teacher_check(params: dict[str, Any], store_path: str | Path, limit: int | N
     """Replay the generated episodes of `expand.task` (the first `limit` of each store: the accepted ones in
     `store_path`, the rejected ones in `rejected_path` if given) in Newton; per plan both verdicts and the
     per-frame RMS vertex distance between the two rollouts; agreement, precision, recall and the confusion table;
+    `constant_agreement`, what a check that gave every plan Newton's more common verdict would agree on (a teacher that
+    accepts nearly every plan makes agreement cheap);
     with `newton_perturb_m`, Newton's agreement with itself (the module docstring)."""
     if any(not s >= 0 for s in newton_perturb_m or []):
         raise ValueError(f"teacher check: newton_perturb_m must be scales >= 0 m, got {newton_perturb_m}")
@@ -93,13 +95,15 @@ def teacher_check(params: dict[str, Any], store_path: str | Path, limit: int | N
     for row, plan_repeats in zip(checked, repeats):
         if plan_repeats:
             row["newton_repeats"] = plan_repeats
+    newton_accepts = share([p["newton"] == "accepted" for p in checked])
     confusion: dict[str, int] = {}
     for p in checked:
         key = f"worldcontact {p['worldcontact']} / newton {p['newton']}"
         confusion[key] = confusion.get(key, 0) + 1
     return {**base, "plans": len(checked),
             "agreement": share([same_verdict(p["worldcontact"], p["newton"]) for p in checked]),
-            "newton_self_agreement": self_check,
+            "newton_self_agreement": self_check, "newton_accepts": newton_accepts,
+            "constant_agreement": max(newton_accepts, 1.0 - newton_accepts),
             "precision": share([p["newton"] == "accepted" for p in checked if p["worldcontact"] == "accepted"]),
             "recall": share([p["worldcontact"] == "accepted" for p in checked if p["newton"] == "accepted"])
             if rejected_path is not None else None,
@@ -123,7 +127,8 @@ def teacher_check_summary(report: dict[str, Any]) -> str:
     """The line `python -m stages.teacher_check` prints."""
     if not report["plans"]:
         return f"teacher check: {report['note']}"
-    return (f"teacher check: {report['plans']} plans, agreement {report['agreement']:.2f}, precision "
+    return (f"teacher check: {report['plans']} plans, agreement {report['agreement']:.2f} (one verdict for all: "
+            f"{report['constant_agreement']:.2f}), precision "
             f"{report['precision']}, recall {report['recall']}, mean RMS {report['mean_rms_error_m'] * 1000:.1f} mm; "
             f"{report['confusion']}" + "".join(f"; Newton against itself at {r['perturb_m']:g} m: agreement "
                                                f"{r['agreement']:.2f}" for r in report.get("newton_self_agreement", [])))
