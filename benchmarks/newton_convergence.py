@@ -161,7 +161,11 @@ def main(argv: list[str] | None = None) -> None:
     specs = draw_specs(base, args.task, args.plans, args.seed)
     out = Path(args.out)
     report: dict[str, Any] = {
-        "benchmark": "newton_convergence", "task": args.task, "command": " ".join(sys.argv), "params": args.params,
+        "benchmark": "newton_convergence",
+        "what": f"Newton against itself: {args.plans} {args.task} specs at VBD iterations {args.iterations}, each rolled "
+                f"out, then re-run in another batch order from frame-0 noise {args.perturb_m} m; verdict agreement and "
+                "RMS distance to the first rollout against rollout s per episode",
+        "task": args.task, "command": " ".join(sys.argv), "params": args.params,
         "overrides": args.overrides, "seed": args.seed, "perturb_m": args.perturb_m,
         "environment": environment_info(resolve_warp_device(base["sim"]["device"], "sim.device")), "settings": [],
         "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
