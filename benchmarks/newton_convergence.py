@@ -87,10 +87,12 @@ def agreement_with_most_iterated(rows: list[dict[str, Any]], verdicts: list[dict
 
 def _flips(row: dict[str, Any]) -> str:
     """The verdict changes of a row's re-runs, summed ('-' for reports written before they were recorded)."""
-    flips = Counter()
+    if not any("flipped" in again for again in row["self_agreement"]):
+        return "-"
+    flips: Counter[str] = Counter()
     for again in row["self_agreement"]:
-        flips.update(again.get("flipped", {}))
-    return ", ".join(f"{k} {n}" for k, n in sorted(flips.items())) if flips or "flipped" in again else "-"
+        flips.update(again["flipped"])
+    return ", ".join(f"{k} {n}" for k, n in sorted(flips.items())) or "none"
 
 
 def markdown(report: dict[str, Any]) -> str:
