@@ -70,6 +70,8 @@ def measure(params: dict[str, Any], task_name: str, specs: list[EpisodeSpec], sc
            "plans": len(plans), "unplannable": len(specs) - len(plans),
            "accepted": share([r.verdict == "accepted" for r in first]),
            "verdicts": dict(Counter(r.verdict for r in first)),
+           "failures_by": dict(Counter(f"{r.verdict} ({r.detail.get('body') or r.detail.get('criterion')})"
+                                       for r in first if r.detail)),
            "self_agreement": agreement, "reset_s": reset_s, "rollout_s": rollout_s,
            "rollout_s_per_episode": rollout_s / len(plans),
            "frames_per_episode": sum(len(p.action) for p in plans) / len(plans)}

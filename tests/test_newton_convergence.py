@@ -25,6 +25,8 @@ def test_two_iteration_counts_on_the_same_specs(tmp_path):
         # another batch order moves a plan by float noise and VBD's unconverged colour order; 3 mm of noise further
         assert rerun["mean_rms_to_first_m"] < noisy["mean_rms_to_first_m"], row
         assert row["most_iterated"] == 3 and row["rollout_s_per_episode"] > 0
+        rejected = sum(n for verdict, n in row["verdicts"].items() if verdict != "accepted")
+        assert sum(row["failures_by"].values()) <= rejected  # blow_up and penetration name their criterion or body
     assert high["agreement_with_most_iterated"] == 1.0
     assert "| 1 | 20 | 2 |" in out.with_suffix(".md").read_text() and out.with_suffix(".png").stat().st_size > 0
 

@@ -12,8 +12,9 @@ from tests.conftest import load_params
 from wc.rotations import quat_matrices
 from wc.scene.scene import build_scene
 from wc.validate import PREDICATES, ValidateConfig, first_failure
+from wc.validate.failure_detail import failure_detail, penetration_detail
 from wc.validate.predicates import (
-    box_signed_distance, convex_depth, convex_planes, finger_pad_boxes, rigid_frames,
+    Episode, box_signed_distance, convex_depth, convex_planes, finger_pad_boxes, rigid_frames,
 )
 from wc.validate.self_intersection import crossing_edges, unique_edges
 
@@ -39,6 +40,10 @@ def clean(scene):
     x = np.repeat(rest[None], T, axis=0).copy()
     action = np.repeat(scene.home_action()[None], T, axis=0)
     return {"x": x, "v": np.zeros_like(x), "action": action, "link_poses": scene.link_poses(action)}
+
+
+def episode(ep):
+    return Episode(ep["x"], ep["v"], ep["action"], ep["link_poses"], DT)
 
 
 def check(scene, ep, cfg=CFG):
@@ -75,6 +80,8 @@ def test_over_stretched_edge(scene, clean):
 def test_bag_pushed_into_table(scene, clean):
     clean["x"][7:, :, 2] -= 0.02  # rigid shift: the bottom vertices sit 2 cm inside the table
     assert check(scene, clean) == ("penetration", 7)
+    detail = penetration_detail(scene, episode(clean), CFG, 7)  # the report names the body and the depth
+    assert detail["body"] == "table" and 0.015 < detail["depth_m"] < 0.025, detail
 
 
 def test_shallow_table_contact_within_tolerance(scene, clean):
@@ -90,6 +97,10 @@ def test_vertex_inside_finger_box(scene, clean):
     clean["link_poses"][3:, k, :3] += clean["x"][0, top] - centre[0, 0]  # move the pad onto the vertex
     # the pad is 1 cm thick: a vertex at its centre is 5 mm deep, so the tolerance must stay below 5 mm
     assert check(scene, clean) == ("penetration", 3)
+    detail = penetration_detail(scene, episode(clean), CFG, 3)
+    assert detail["body"] == "right_finger_a" and detail["depth_m"] > CFG.penetration_tol_m, detail
+    assert failure_detail(scene, episode(clean), CFG, "penetration", 3) == detail
+    assert failure_detail(scene, episode(clean), CFG, "not_lifted", 3) == {}
 
 
 def test_box_signed_distance_is_exact():
@@ -236,6 +247,7 @@ def test_bag_vertex_inside_predicted_sphere(scene_cfg, clean):
     assert check(scene, touching) is None
     deep = with_rigid(scene, clean, "sphere", p + (r - 0.012) * out, yaw_matrix(30.0), slice(6, None))
     assert check(scene, deep) == ("penetration", 6)
+    assert penetration_detail(scene, episode(deep), CFG, 6)["body"] == "sphere"
 
 
 def test_bag_vertex_inside_held_cube(scene_cfg, clean):
@@ -313,7 +325,8 @@ def test_convex_planes_rejects_non_convex(scene_cfg):
 
 
 def test_blow_up_says_which_criterion_fired(scene, clean):
-    from wc.validate.predicates import Episode, blow_up, blow_up_detail  # noqa: PLC0415
+    from wc.validate.failure_detail import blow_up_detail  # noqa: PLC0415
+    from wc.validate.predicates import blow_up  # noqa: PLC0415
 
     fast = {k: np.array(a, copy=True) for k, a in clean.items()}
     fast["v"][4, 0] = [0.0, 0.0, CFG.max_speed_m_s + 1.0]

@@ -58,6 +58,7 @@ def test_newton_episodes_replay_to_themselves_batched_over_worlds(tmp_path):
         assert plan["newton"] == ("accepted" if verdict is None else verdict[0])
         assert len(plan["rms_error_m"]) == len(x) and plan["rms_error_m"][0] == 0.0
         assert plan["mean_rms_error_m"] < 2e-3, plan["rms_error_m"]
+        assert (plan["newton_detail"] == {}) == (plan["newton"] not in ("blow_up", "penetration")), plan["newton_detail"]
     accepted, rejected = report["episodes"]
     assert rejected["worldcontact"] == "blow_up" and accepted["worldcontact"] == accepted["newton"]
     # Newton against itself: another batch order stays near the first rollout; 3 mm of noise moves it further

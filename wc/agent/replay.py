@@ -20,6 +20,8 @@ from wc.agent.runner import TaskWorld, execute, judge
 from wc.dynamics import ObjectState
 from wc.tasks.base import EpisodeSpec
 from wc.validate.config import ValidateConfig
+from wc.validate.failure_detail import failure_detail
+from wc.validate.predicates import Episode
 
 
 @dataclass
@@ -41,6 +43,7 @@ class Replay:
     failure_frame: int | None
     x: np.ndarray | None  # (T, V, 3) [m]; None unless kept
     rms_error_m: np.ndarray | None  # (T,) RMS vertex distance to the plan's reference_x [m]; None without one
+    detail: dict[str, object]  # a blow_up's criterion or a penetration's body (wc.validate.failure_detail); {} else
 
 
 def replay(world: TaskWorld, plans: list[Plan], validate_cfg: ValidateConfig, frame_dt_s: float,
@@ -59,11 +62,13 @@ def replay(world: TaskWorld, plans: list[Plan], validate_cfg: ValidateConfig, fr
         for plan, (x, v) in zip(batch, rollouts):
             frames = len(plan.action)
             x, v = x[:frames], v[:frames]
-            failure = judge(world, plan.spec, x, v, plan.action, world.scene.link_poses(plan.action), validate_cfg,
-                            frame_dt_s)
+            poses = world.scene.link_poses(plan.action)
+            failure = judge(world, plan.spec, x, v, plan.action, poses, validate_cfg, frame_dt_s)
             rms = None if plan.reference_x is None else np.sqrt(np.square(x - plan.reference_x[:frames]).sum(-1).mean(-1))
+            detail = {} if failure is None else failure_detail(
+                world.scene, Episode(x, v, plan.action, poses, frame_dt_s), validate_cfg, *failure)
             out.append(Replay("accepted" if failure is None else failure[0],
-                              None if failure is None else int(failure[1]), x if keep_x else None, rms))
+                              None if failure is None else int(failure[1]), x if keep_x else None, rms, detail))
     return out
 
 

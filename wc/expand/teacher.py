@@ -58,7 +58,7 @@ def _checked(store: TrajectoryStore, eid: str, newton: Replay) -> dict[str, Any]
     attrs, rms = store.episode_attrs(eid), newton.rms_error_m
     return {"episode": eid, "store": str(store.path), "parent": attrs.get("parent"),
             "worldcontact": "accepted" if attrs["accepted"] else str(attrs["first_failure"]),
-            "newton": newton.verdict, "newton_failure_frame": newton.failure_frame,
+            "newton": newton.verdict, "newton_failure_frame": newton.failure_frame, "newton_detail": newton.detail,
             "rms_error_m": [float(e) for e in rms], "final_rms_error_m": float(rms[-1]),
             "mean_rms_error_m": float(rms.mean())}
 

@@ -33,7 +33,8 @@ from wc.sim.config import SimConfig
 from wc.tasks.base import Task, get_task
 from wc.train.config import TrainConfig
 from wc.validate.config import ValidateConfig
-from wc.validate.predicates import Episode, blow_up_detail, first_failure
+from wc.validate.failure_detail import failure_detail
+from wc.validate.predicates import Episode, first_failure
 from wc.validate.stage import EpisodeScenes
 
 Counters = dict[str, dict[str, float]]  # the projection's counters by part: projection, untangle, then
@@ -52,10 +53,9 @@ def verdict(task: Task, scene: Scene, task_check: bool, planned: PlannedEpisode,
 
 def _failure_detail(scene: Scene, r: Rollout, cfg: ValidateConfig, dt: float, reason: str,
                     frame: int) -> dict[str, Any]:
-    """A blow_up's sub-criterion (speed or strain) and both values at its frame; nothing for other reasons."""
-    if reason != "blow_up":
-        return {}
-    return blow_up_detail(scene, Episode(r.x, r.v, r.action, r.link_poses, dt), cfg, frame)
+    """A blow_up's sub-criterion (speed or strain) and both values at its frame, a penetration's body and depth;
+    nothing for other reasons."""
+    return failure_detail(scene, Episode(r.x, r.v, r.action, r.link_poses, dt), cfg, reason, frame)
 
 
 def joint_projection(cfg: ExpandConfig, scene: Scene, sim: SimConfig, validate_cfg: ValidateConfig
@@ -97,7 +97,7 @@ class ExpandBatch:
 
     rollouts: list[Rollout]
     failures: list[tuple[str, int] | None]  # (first failing check, frame); None: accepted
-    details: list[dict[str, Any]]  # a blow_up's sub-criterion (_failure_detail); {} otherwise
+    details: list[dict[str, Any]]  # a blow_up's sub-criterion or a penetration's body (_failure_detail); {} otherwise
     rollout_s: float  # world-model time (the checks not counted)
     counters: Counters  # the projection's counters over this batch alone
     device: str

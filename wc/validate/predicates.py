@@ -60,9 +60,8 @@ def box_signed_distance(points: np.ndarray, centre: np.ndarray, quat: np.ndarray
     return outside + np.minimum(q.max(axis=-1), 0.0)
 
 
-def robot_boxes(scene: Scene, link_poses: np.ndarray, links: tuple[str, ...] | None = None
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """World boxes of the robot's link shapes: centres (T, B, 3), quats (T, B, 4), half extents (B, 3).
+def robot_box_shapes(scene: Scene, links: tuple[str, ...] | None = None) -> list[tuple[int, object]]:
+    """(index in scene.link_names, box shape) of the robot's box link shapes, in robot_boxes' order.
 
     links: prefixed body names to include (default: every arm body); capsules are not handled.
     """
@@ -70,20 +69,26 @@ def robot_boxes(scene: Scene, link_poses: np.ndarray, links: tuple[str, ...] | N
     for s in scene.link_shapes:
         if s.kind == "box":
             shapes.setdefault(s.link, []).append(s)
-    cols, pos, quat, half = [], [], [], []
+    out = []
     for k, name in enumerate(scene.link_names):
         side, _, link = name.partition("_")
-        if side not in OPENING_COLUMNS or (links is not None and name not in links):
-            continue
-        for s in shapes.get(link, []):
-            cols.append(k)
-            pos.append(s.local_pos)
-            quat.append(s.local_quat_xyzw)
-            half.append(s.size)
+        if side in OPENING_COLUMNS and (links is None or name in links):
+            out += [(k, s) for s in shapes.get(link, [])]
+    return out
+
+
+def robot_boxes(scene: Scene, link_poses: np.ndarray, links: tuple[str, ...] | None = None
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """World boxes of the robot's link shapes (robot_box_shapes): centres (T, B, 3), quats (T, B, 4), half extents
+    (B, 3)."""
+    boxes = robot_box_shapes(scene, links)
+    cols = [k for k, _ in boxes]
+    pos = np.asarray([s.local_pos for _, s in boxes], np.float64).reshape(-1, 3)
+    quat = np.asarray([s.local_quat_xyzw for _, s in boxes], np.float64).reshape(-1, 4)
     body = np.asarray(link_poses, np.float64)[:, cols]
-    centre = body[..., :3] + quat_rotate(body[..., 3:], np.asarray(pos, np.float64)[None])
-    q = quat_multiply(body[..., 3:], np.broadcast_to(np.asarray(quat, np.float64), body[..., 3:].shape))
-    return centre, q, np.asarray(half, np.float64).reshape(-1, 3)
+    centre = body[..., :3] + quat_rotate(body[..., 3:], pos[None])
+    q = quat_multiply(body[..., 3:], np.broadcast_to(quat, body[..., 3:].shape))
+    return centre, q, np.asarray([s.size for _, s in boxes], np.float64).reshape(-1, 3)
 
 
 def _min_box_distance(x: np.ndarray, centre: np.ndarray, quat: np.ndarray, half: np.ndarray,
@@ -135,14 +140,6 @@ def blow_up(scene: Scene, ep: Episode, cfg: ValidateConfig) -> int | None:
     """First frame with a vertex faster than max_speed_m_s or a rest edge strained beyond max_edge_strain."""
     speed, strain = speed_and_strain(scene, ep)
     return _first((speed > cfg.max_speed_m_s) | (strain > cfg.max_edge_strain))
-
-
-def blow_up_detail(scene: Scene, ep: Episode, cfg: ValidateConfig, frame: int) -> dict[str, object]:
-    """Which blow_up criterion fired at `frame` ("speed", "strain" or "speed+strain"), with both values there."""
-    speed, strain = speed_and_strain(scene, ep)
-    fired = [name for name, value, limit in (("speed", speed[frame], cfg.max_speed_m_s),
-                                             ("strain", strain[frame], cfg.max_edge_strain)) if value > limit]
-    return {"criterion": "+".join(fired), "max_speed_m_s": float(speed[frame]), "max_edge_strain": float(strain[frame])}
 
 
 def convex_planes(vertices: np.ndarray, faces: np.ndarray, name: str = "object"
