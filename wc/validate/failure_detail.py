@@ -7,7 +7,8 @@ import numpy as np
 from wc.scene.scene import Scene
 from wc.validate.config import ValidateConfig
 from wc.validate.predicates import (Episode, box_signed_distance, cloth_rows, convex_depth, convex_planes,
-                                    rigid_poses, robot_box_shapes, robot_boxes, speed_and_strain)
+                                    rigid_poses, robot_box_shapes, robot_boxes, speed_and_strain,
+                                    table_distance)
 
 
 def blow_up_detail(scene: Scene, ep: Episode, cfg: ValidateConfig, frame: int) -> dict[str, object]:
@@ -22,9 +23,7 @@ def penetration_detail(scene: Scene, ep: Episode, cfg: ValidateConfig, frame: in
     """The body a cloth vertex is deepest inside at `frame` ("table", a robot link such as "left_link6", or a rigid
     object) and that depth [m], beside the tolerance."""
     x = np.asarray(ep.x[frame:frame + 1, cloth_rows(scene)], np.float64)  # (1, N, 3)
-    depth = {"table": float(-box_signed_distance(x, np.asarray(scene.table.center_m, np.float64),
-                                                 np.array([0.0, 0.0, 0.0, 1.0]),
-                                                 np.asarray(scene.table.half_extents_m, np.float64)).min())}
+    depth = {"table": float(-table_distance(scene, x).min())}
     centre, quat, half = robot_boxes(scene, ep.link_poses[frame:frame + 1])
     for b, (k, _) in enumerate(robot_box_shapes(scene)):
         inside = float(-box_signed_distance(x, centre[:, b, None], quat[:, b, None], half[b]).min())

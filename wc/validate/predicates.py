@@ -235,6 +235,12 @@ def rigid_poses(scene: Scene, ep: Episode) -> list[tuple[str, ObjectMesh, np.nda
     return out
 
 
+def table_distance(scene: Scene, x: np.ndarray) -> np.ndarray:
+    """Exact signed distance [m] (negative inside) of points x (..., 3) to the table box."""
+    return box_signed_distance(np.asarray(x, np.float64), np.asarray(scene.table.center_m, np.float64),
+                               np.array([0.0, 0.0, 0.0, 1.0]), np.asarray(scene.table.half_extents_m, np.float64))
+
+
 def table_and_robot_distance(scene: Scene, x: np.ndarray, link_poses: np.ndarray, reach_m: float = 0.0
                              ) -> np.ndarray:
     """(T, N) exact signed distance [m] (negative inside) of points x (T, N, 3) to the nearest of the table box
@@ -242,11 +248,8 @@ def table_and_robot_distance(scene: Scene, x: np.ndarray, link_poses: np.ndarray
     Robot boxes farther than reach_m from every point of a frame are skipped, so values above reach_m may be
     a farther box's distance or +inf; the table is always exact."""
     x = np.asarray(x, np.float64)
-    table_c = np.asarray(scene.table.center_m, np.float64)
-    table_q = np.array([0.0, 0.0, 0.0, 1.0])
-    table = box_signed_distance(x, table_c, table_q, np.asarray(scene.table.half_extents_m, np.float64))
     centre, quat, half = robot_boxes(scene, link_poses)
-    return np.minimum(table, _min_box_distance(x, centre, quat, half, reach_m))
+    return np.minimum(table_distance(scene, x), _min_box_distance(x, centre, quat, half, reach_m))
 
 
 def penetration(scene: Scene, ep: Episode, cfg: ValidateConfig) -> int | None:
