@@ -286,3 +286,20 @@ def test_parents_of_the_proposed_cell_come_first():
     sources = [SourceEpisode(f"ep_{i}", cell, x, {}, x) for i, cell in enumerate((0, 1, 1))]
     assert [pick_parent(sources, 1, i).eid for i in range(4)] == ["ep_1", "ep_2", "ep_1", "ep_2"]
     assert [pick_parent(sources, 2, i).eid for i in range(4)] == ["ep_0", "ep_1", "ep_2", "ep_0"]  # none: all in turn
+
+
+def test_max_sources_takes_the_first_accepted_episodes_in_store_order(params, store_path):
+    from wc.expand import source_episodes
+    from wc.validate.stage import EpisodeScenes
+
+    store = TrajectoryStore(store_path)
+    task = get_task(TASK, params)
+    scenes = EpisodeScenes(load_section(params, "scene", SceneConfig), store)
+    every, _ = source_episodes(store, task, scenes)
+    first, _ = source_episodes(store, task, scenes, limit=1)
+    assert len(every) == 2 and [s.eid for s in first] == [every[0].eid]
+    assert [s.eid for s in source_episodes(store, task, scenes, limit=5)[0]] == [s.eid for s in every]
+    p = copy.deepcopy(params)
+    p["expand"]["max_sources"] = -1
+    with pytest.raises(ParamsError, match="max_sources must be >= 0"):
+        load_section(p, "expand", ExpandConfig)

@@ -21,6 +21,7 @@ class ExpandConfig:
     yaw_range_deg: Range  # extra bag yaw about z through its centroid, on top of the cell's yaw bin offset
     shift_x_range_m: Range  # bag xy shift, uniform per axis
     shift_y_range_m: Range
+    max_sources: int = 0  # the task's first accepted episodes in store order used as sources at most (0: all; paper: 25)
     task_check: bool = True  # also apply the task's own verdict (lift_handle: not_lifted), as the simulator agent does
     # after each predicted step: "joint" projects cloth edge limits and contacts together (wc.expand.constraints),
     # "contact" only pushes cloth out of bodies (wc.expand.contact), "none" keeps the model's step
@@ -51,6 +52,8 @@ class ExpandConfig:
         for name in ("target_trajectories", "max_attempts", "batch_size"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.max_sources < 0:
+            raise ValueError(f"max_sources must be >= 0 (0: every accepted episode), got {self.max_sources}")
         for name in ("yaw_range_deg", "shift_x_range_m", "shift_y_range_m"):
             low, high = getattr(self, name)
             if not low <= high:

@@ -57,10 +57,11 @@ class PlannedEpisode:
     actions: np.ndarray  # (T, 14)
 
 
-def source_episodes(store: TrajectoryStore, task: Task, scenes: EpisodeScenes) -> tuple[list[SourceEpisode], Scene]:
-    """Every accepted episode of `task` in `store` (frame 0 only) and their common scene; NoSourceEpisodesError
-    when there is none, ValueError when their layout is not the task's."""
-    ids = store.episodes_where(task=task.name, accepted=True)
+def source_episodes(store: TrajectoryStore, task: Task, scenes: EpisodeScenes, limit: int = 0
+                    ) -> tuple[list[SourceEpisode], Scene]:
+    """The accepted episodes of `task` in `store` (frame 0 only; the first `limit` in store order, 0: all) and their
+    common scene; NoSourceEpisodesError when there is none, ValueError when their layout is not the task's."""
+    ids = store.episodes_where(task=task.name, accepted=True)[:limit or None]
     if not ids:
         tasks = sorted({store.episode_attrs(e)["task"] for e in store.episode_ids})
         raise NoSourceEpisodesError(f"{store.path}: no accepted episode of task {task.name!r} to expand "

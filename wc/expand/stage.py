@@ -172,7 +172,7 @@ def expand(params: dict[str, Any], model_dir: str | Path = EXPAND["model"], stor
     started = time.perf_counter()
     task = get_task(cfg.task, params)
     src = TrajectoryStore(store)
-    sources, scene = source_episodes(src, task, EpisodeScenes(scene_cfg, src))
+    sources, scene = source_episodes(src, task, EpisodeScenes(scene_cfg, src), cfg.max_sources)
     dt = src.dt
     checkpoint = _checkpoint_info(model_dir)
     if checkpoint["dt"] is not None and abs(float(checkpoint["dt"]) - dt) > 1e-9:
