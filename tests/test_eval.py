@@ -345,3 +345,27 @@ def test_a_worldcontact_method_sets_its_own_precision(tmp_path, params):
         p["evaluate"]["methods"] = {"cv": {"kind": "constant_velocity", key: True}}
         with pytest.raises(ParamsError, match=key):
             load_section(p, "evaluate", EvaluateConfig)
+
+
+def test_a_stability_csv_reads_back_into_its_curves_and_figure(tmp_path):
+    from wc.eval.replot import main as replot_main
+    from wc.eval.stability import CSV_HEADER, StabilityCurve, csv_rows, read_csv_curves
+    from wc.reports import write_csv_atomic
+
+    curves = [StabilityCurve("worldcontact", "lift", "ep_000003", 0, np.array([1e-4, 2e-4, np.nan]),
+                             np.array([0.0, 1.0, 2.0]), np.array([0.1, 2.5, np.nan]), 2),
+              StabilityCurve("constant_velocity", "lift", "ep_000003", 0, np.array([3e-4, 5e-4]),
+                             np.zeros(2), np.zeros(2), None)]
+    path = write_csv_atomic(tmp_path / "stability.csv", CSV_HEADER, csv_rows(curves, 0.04))
+    back, dt = read_csv_curves(path)
+    assert dt == pytest.approx(0.04) and len(back) == 2
+    for a, b in zip(curves, back):
+        assert (a.method, a.task, a.episode, a.start_frame, a.divergence_step) == \
+            (b.method, b.task, b.episode, b.start_frame, b.divergence_step)
+        for field in ("position_mse_m2", "penetration_rate_pct", "max_edge_strain"):
+            np.testing.assert_array_equal(getattr(a, field), getattr(b, field))
+    replot_main([str(path), str(tmp_path / "again.png"), "--strain-bound", "2.0"])
+    assert (tmp_path / "again.png").stat().st_size > 10_000
+    (tmp_path / "other.csv").write_text("policy,successes\nx,1\n")
+    with pytest.raises(ValueError, match="other.csv: not a stability CSV"):
+        read_csv_curves(tmp_path / "other.csv")

@@ -3,8 +3,10 @@ which a method first diverges (non-finite state, an edge strained beyond a bound
 
 from __future__ import annotations
 
+import csv
 from collections.abc import Iterable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -72,6 +74,34 @@ def csv_rows(curves: Iterable[StabilityCurve], dt: float) -> list[list[Any]]:
                          cell(c.position_mse_m2[k]), cell(c.penetration_rate_pct[k]), cell(c.max_edge_strain[k]),
                          int(diverged)])
     return rows
+
+
+def read_csv_curves(path: str | Path) -> tuple[list[StabilityCurve], float]:
+    """The curves of a stability CSV written from `csv_rows` (a run's reports/stability.csv, or one a GPU job sent
+    back) and its frame dt, so its figure can be drawn again; ValueError naming the file when it is not one."""
+    with Path(path).open(newline="") as f:
+        reader = csv.DictReader(f)
+        if reader.fieldnames != CSV_HEADER:
+            raise ValueError(f"{path}: not a stability CSV (columns {reader.fieldnames}, expected {CSV_HEADER})")
+        rows = list(reader)
+    if not rows:
+        raise ValueError(f"{path}: a stability CSV without rows")
+    by_rollout: dict[tuple[str, str, str, int], list[dict[str, str]]] = {}
+    for row in rows:
+        by_rollout.setdefault((row["method"], row["task"], row["episode"], int(row["start_frame"])), []).append(row)
+
+    def column(rs: list[dict[str, str]], name: str) -> np.ndarray:
+        return np.array([float(r[name]) if r[name] != "" else np.nan for r in rs])
+
+    curves = []
+    for (method, task, episode, start), rs in by_rollout.items():
+        rs.sort(key=lambda r: int(r["step"]))
+        diverged = [int(r["step"]) for r in rs if r["diverged"] == "1"]
+        curves.append(StabilityCurve(method, task, episode, start, column(rs, "position_mse_m2"),
+                                     column(rs, "penetration_rate_pct"), column(rs, "max_edge_strain"),
+                                     diverged[0] if diverged else None))
+    first = rows[0]
+    return curves, float(first["time_s"]) / int(first["step"])
 
 
 def divergence_summary(curves: Iterable[StabilityCurve]) -> dict[str, dict[str, Any]]:
