@@ -84,3 +84,21 @@ def test_missing_store_is_named_and_an_empty_one_reported(tmp_path):
         pass
     report = teacher_check(params, tmp_path / "empty.zarr")
     assert report["plans"] == 0 and report["precision"] is None and "no generated" in report["note"]
+
+
+def test_a_plan_reads_its_reference_trajectory_only_when_judged(tmp_path):
+    """`_plan` keeps frame 0 and the actions; the whole trajectory is read from the store when asked for."""
+    from tests.synthetic_store import write_synthetic_store
+    from wc.data.store import TrajectoryStore
+    from wc.expand.teacher import _plan
+
+    path = write_synthetic_store(tmp_path / "s.zarr", load_params(), [("fall", "train")], frames=6)
+    store = TrajectoryStore(path)
+    eid = store.episode_ids[0]
+    ep = store.read_episode(eid, ("x", "v", "action"))
+    plan = _plan(store, eid, "fall")
+    assert callable(plan.reference_x) and plan.spec.task == "fall"
+    np.testing.assert_array_equal(plan.x0, ep["x"][0])
+    np.testing.assert_array_equal(plan.v0, ep["v"][0])
+    np.testing.assert_array_equal(plan.action, ep["action"])
+    np.testing.assert_array_equal(plan.reference(), ep["x"])

@@ -11,6 +11,7 @@ the same: the ceiling of any check that scores a model against one Newton replay
 from __future__ import annotations
 
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -32,7 +33,12 @@ class Plan:
     x0: np.ndarray  # (V, 3) [m]
     v0: np.ndarray  # (V, 3) [m/s]
     action: np.ndarray  # (T, 14)
-    reference_x: np.ndarray | None = None  # (T, V, 3) [m]: a trajectory to measure the replay against
+    # (T, V, 3) [m]: a trajectory to measure the replay against, or a function that reads it (called when the plan's
+    # batch is judged, so that a long list of plans does not hold every reference at once)
+    reference_x: np.ndarray | Callable[[], np.ndarray] | None = None
+
+    def reference(self) -> np.ndarray | None:
+        return self.reference_x() if callable(self.reference_x) else self.reference_x
 
 
 @dataclass
@@ -64,7 +70,8 @@ def replay(world: TaskWorld, plans: list[Plan], validate_cfg: ValidateConfig, fr
             x, v = x[:frames], v[:frames]
             poses = world.scene.link_poses(plan.action)
             failure = judge(world, plan.spec, x, v, plan.action, poses, validate_cfg, frame_dt_s)
-            rms = None if plan.reference_x is None else np.sqrt(np.square(x - plan.reference_x[:frames]).sum(-1).mean(-1))
+            reference = plan.reference()
+            rms = None if reference is None else np.sqrt(np.square(x - reference[:frames]).sum(-1).mean(-1))
             detail = {} if failure is None else failure_detail(
                 world.scene, Episode(x, v, plan.action, poses, frame_dt_s), validate_cfg, *failure)
             out.append(Replay("accepted" if failure is None else failure[0],

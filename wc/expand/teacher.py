@@ -46,11 +46,13 @@ def _generated(path: Path, task: str, limit: int | None) -> list[tuple[Trajector
 
 
 def _plan(store: TrajectoryStore, eid: str, task: str) -> Plan:
-    """A generated episode's plan: its frame-0 state and actions, its trajectory as the replay's reference."""
-    ep, attrs = store.read_episode(eid, ("x", "v", "action")), store.episode_attrs(eid)
+    """A generated episode's plan: its frame-0 state and actions; its trajectory, the replay's reference, is read when
+    the plan's batch is judged (all of them at once would hold ~2 GB at paper scale)."""
+    first, attrs = store.read_window(eid, 0, 1, ("x", "v")), store.episode_attrs(eid)
     spec = EpisodeSpec(task, int(attrs["seed"]), int(attrs["cell"]), float(attrs["speed"]),
                        float(attrs["amplitude"]))
-    return Plan(spec, ep["x"][0], ep["v"][0], ep["action"], reference_x=ep["x"])
+    return Plan(spec, first["x"][0], first["v"][0], store.read_episode(eid, ("action",))["action"],
+                reference_x=lambda: store.read_episode(eid, ("x",))["x"])
 
 
 def _checked(store: TrajectoryStore, eid: str, newton: Replay) -> dict[str, Any]:
