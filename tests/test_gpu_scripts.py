@@ -57,3 +57,24 @@ def test_table1_params_are_valid_and_name_what_the_hold_script_unpacks():
         assert methods[name]["path"] == f"models/table1/baselines/{name}"
     assert methods["worldcontact_budget"]["path"] == "models/table1/worldcontact"
     assert params["train"]["max_minutes"] == params["baselines"]["max_minutes"]  # one budget for every learned method
+
+
+def test_the_extra_overrides_the_gpu_scripts_pass_name_existing_params():
+    """`EXTRA_*_SETS="--set key=value ..."` in scripts/gpu/*.sh: every key is one params.yaml has (an unknown key
+    fails the stage on the GPU machine, after the data were simulated)."""
+    import re  # noqa: PLC0415
+    import shlex  # noqa: PLC0415
+
+    base = read_params(ROOT / "params.yaml")
+    found = 0
+    for script in sorted((ROOT / "scripts" / "gpu").glob("*.sh")):
+        for extra in re.findall(r'EXTRA_[A-Z]+_SETS="([^"]*)"', script.read_text()):
+            words = shlex.split(extra)
+            assert words[::2] == ["--set"] * (len(words) // 2) and len(words) % 2 == 0, (script.name, extra)
+            for pair in words[1::2]:
+                node = base
+                for part in pair.split("=", 1)[0].split("."):
+                    assert isinstance(node, dict) and part in node, f"{script.name}: unknown param in --set {pair}"
+                    node = node[part]
+                found += 1
+    assert found >= 5
