@@ -5,9 +5,8 @@
 # Packed wheels (warp, newton, zarr, trimesh) on PYTHONPATH; state lives in /tmp/run. The acceptance checks run on the
 # GPU too (validate.device): on the host they cost more than the simulation (reports/check_cost_cpu.md). No
 # torch.compile by default: it recompiled for every layout of multi-task data (~250 s a step on the H100).
-# SIM_ITERATIONS: Newton's VBD iterations per substep for the data and the teacher check (5 unless set, as the runs
-# made before params.yaml's default became 10; reports/gpu/newton_convergence_h100.md: at 5 about half the lifts slip
-# out of the pads, at 10 and more none do)
+# SIM_ITERATIONS: Newton's VBD iterations per substep for the data and the teacher check (params.yaml's 5 by default;
+# reports/gpu/newton_convergence_h100.md: at 5 about half the lifts slip out of the pads, at 10 and more none do)
 SIM_SETS=(--set sim.device=cuda --set validate.device=cuda --set sim.worlds=${WORLDS:-32} --set agent.workers=${WORKERS:-1}
   --set sim.iterations=${SIM_ITERATIONS:-5}
   --set "agent.tasks=${TASKS:-[lift_handle, grasp_handle, shake, lift_two_arms, place, release_drop]}"
