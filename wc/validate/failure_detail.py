@@ -22,15 +22,16 @@ def blow_up_detail(scene: Scene, ep: Episode, cfg: ValidateConfig, frame: int) -
 def penetration_detail(scene: Scene, ep: Episode, cfg: ValidateConfig, frame: int) -> dict[str, object]:
     """The body a cloth vertex is deepest inside at `frame` ("table", a robot link such as "left_link6", or a rigid
     object) and that depth [m], beside the tolerance."""
-    x = np.asarray(ep.x[frame:frame + 1, cloth_rows(scene)], np.float64)  # (1, N, 3)
+    at = Episode(*(a[frame:frame + 1] for a in (ep.x, ep.v, ep.action, ep.link_poses)), ep.frame_dt_s)  # that frame
+    x = np.asarray(at.x[:, cloth_rows(scene)], np.float64)  # (1, N, 3)
     depth = {"table": float(-table_distance(scene, x).min())}
-    centre, quat, half = robot_boxes(scene, ep.link_poses[frame:frame + 1])
+    centre, quat, half = robot_boxes(scene, at.link_poses)
     for b, (k, _) in enumerate(robot_box_shapes(scene)):
         inside = float(-box_signed_distance(x, centre[:, b, None], quat[:, b, None], half[b]).min())
         depth[scene.link_names[k]] = max(depth.get(scene.link_names[k], -np.inf), inside)
-    for name, mesh, pos, rot in rigid_poses(scene, ep):
+    for name, mesh, pos, rot in rigid_poses(scene, at):  # fitted on that frame only
         planes = convex_planes(mesh.vertices, mesh.faces, name)
-        depth[name] = float(convex_depth(x, pos[frame:frame + 1], rot[frame:frame + 1], planes)[0])
+        depth[name] = float(convex_depth(x, pos, rot, planes)[0])
     body = max(depth, key=lambda name: depth[name])
     return {"body": body, "depth_m": depth[body], "tolerance_m": cfg.penetration_tol_m}
 
