@@ -132,15 +132,6 @@ def test_crossing_triangles(scene, clean):
     assert check(scene, clean, sparse) == ("self_intersection", 9)
 
 
-def test_an_edge_that_cannot_be_checked_to_its_end_is_an_error(scene, clean):
-    """Every edge ray starts on its own vertex's triangles: with no skips allowed none reaches its far end."""
-    bag = scene.objects["bag"]
-    edges = unique_edges(bag.faces)
-    assert (crossing_edges(clean["x"][0], bag.faces, edges) == -1).all()  # clean frame: all checked, none crossing
-    with pytest.raises(RuntimeError, match="not checked"):
-        crossing_edges(clean["x"][0], bag.faces, edges, max_skips=0)
-
-
 def test_shipped_params_check_every_frame():
     for path in ("params.yaml", "params/gpu.yaml"):
         assert load_params(file=path)["validate"]["self_intersection_every"] == 1, path

@@ -69,3 +69,13 @@ def quat_matrices_torch(q: torch.Tensor) -> torch.Tensor:
         (2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)),
     )
     return torch.stack([torch.stack(r, dim=-1) for r in rows], dim=-2)
+
+
+def quat_multiply_torch(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Hamilton product a * b of xyzw quaternions [..., 4] (as `quat_multiply`)."""
+    ax, ay, az, aw = a.unbind(-1)
+    bx, by, bz, bw = b.unbind(-1)
+    return torch.stack([aw * bx + ax * bw + ay * bz - az * by,
+                        aw * by - ax * bz + ay * bw + az * bx,
+                        aw * bz + ax * by - ay * bx + az * bw,
+                        aw * bw - ax * bx - ay * by - az * bz], dim=-1)

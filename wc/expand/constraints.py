@@ -48,6 +48,25 @@ def edge_colours(edges: np.ndarray) -> list[np.ndarray]:
     return [np.flatnonzero(colour_of == c) for c in range(int(colour_of.max(initial=-1)) + 1)]
 
 
+def edge_pass(x: Tensor, inv_mass: Tensor, colours: list[tuple[Tensor, Tensor, Tensor]], lo: Tensor, hi: Tensor,
+              shift: Tensor) -> Tensor:
+    """One Gauss-Seidel pass over the edge colours (each (i, j, edge index)): both ends of every edge outside its
+    [lo, hi] length move to the nearest bound, split by inverse mass; x (B, N, 3) corrected in place and returned,
+    its move added to shift (B, N, 3). No host sync."""
+    before = x.clone()
+    for i, j, e in colours:
+        d = x[:, j] - x[:, i]
+        length = d.norm(dim=-1).clamp_min(1e-12)
+        target = torch.minimum(torch.maximum(length, lo[e]), hi[e])
+        wi, wj = inv_mass[:, i], inv_mass[:, j]
+        share = (wi + wj).clamp_min(1e-12)
+        step = ((length - target) / (length * share))[..., None] * d  # total move, split by inverse mass
+        x[:, i] += wi[..., None] * step
+        x[:, j] -= wj[..., None] * step
+    shift += x - before
+    return x
+
+
 @dataclass(frozen=True)
 class ProjectionReport:
     """Per episode (B,): edge strain (max |length / rest - 1|) and deepest penetration [m] before and after, and
@@ -115,23 +134,6 @@ class ConstraintProjection:
         sd = torch.cat([g.depth(x[:, rows])[0] for g in bodies], dim=-1)  # (B, n, K)
         return (-sd.amin(dim=-1)).clamp_min(0.0).amax(dim=-1)
 
-    def _edges_pass(self, x: Tensor, inv_mass: Tensor, colours, lo: Tensor, hi: Tensor,  # noqa: ANN001
-                    shift: Tensor) -> Tensor:
-        """One Gauss-Seidel pass over the colours; x (B, N, 3) corrected in place and returned, its move added to
-        shift (B, N, 3)."""
-        before = x.clone()
-        for i, j, e in colours:
-            d = x[:, j] - x[:, i]
-            length = d.norm(dim=-1).clamp_min(1e-12)
-            target = torch.minimum(torch.maximum(length, lo[e]), hi[e])
-            wi, wj = inv_mass[:, i], inv_mass[:, j]
-            share = (wi + wj).clamp_min(1e-12)
-            step = ((length - target) / (length * share))[..., None] * d  # total move, split by inverse mass
-            x[:, i] += wi[..., None] * step
-            x[:, j] -= wj[..., None] * step
-        shift += x - before
-        return x
-
     @torch.no_grad()
     def project(self, x_prev: Tensor, x: Tensor, v: Tensor, dt: float, bodies: list[Bodies],
                 pinned: Tensor | None = None) -> tuple[Tensor, Tensor, ProjectionReport]:
@@ -150,7 +152,7 @@ class ConstraintProjection:
         pairs = self.self_contact.pairs(x) if self.self_contact is not None else []
         done = 0
         for done in range(1, self.iterations + 1):
-            self._edges_pass(out, inv_mass, colours, lo, hi, edge_shift)
+            edge_pass(out, inv_mass, colours, lo, hi, edge_shift)
             cloth = self.contacts.rows.to(x.device)
             if len(cloth) and bodies:
                 moved = self.contacts.push_out(out[:, cloth], bodies)
@@ -170,7 +172,7 @@ class ConstraintProjection:
         for _ in range(self.final_edge_passes):  # edges first where the loop left them violated (module doc)
             if bool((self._violation(out, lo, hi) <= self.tolerance_m).all()):
                 break
-            self._edges_pass(out, inv_mass, colours, lo, hi, edge_shift)
+            edge_pass(out, inv_mass, colours, lo, hi, edge_shift)
         v_out = v + edge_shift / dt
         inward = (v_out * normal).sum(-1, keepdim=True).clamp_max(0.0)  # velocity into the surface of a pushed vertex
         v_out = torch.where(pushed[..., None], v_out - inward * normal, v_out)

@@ -21,7 +21,7 @@ from wc.scene.piper import PAD_CENTRE_IN_FINGER_M, PAD_HALF_EXTENTS_M
 from wc.scene.scene import Scene
 from wc.rotations import quat_conjugate, quat_matrices, quat_multiply, quat_rotate
 from wc.validate.config import ValidateConfig
-from wc.validate.self_intersection import crossing_edges, unique_edges
+from wc.validate.self_intersection import first_crossing_frame, unique_edges
 
 OPENING_COLUMNS = {"left": 6, "right": 13}  # action = [q_L (6), d_L, q_R (6), d_R]
 CHUNK_ELEMENTS = 4_000_000  # frames x vertices x boxes (or planes) evaluated at once by the distances
@@ -266,16 +266,16 @@ def penetration(scene: Scene, ep: Episode, cfg: ValidateConfig) -> int | None:
 
 def self_intersection(scene: Scene, ep: Episode, cfg: ValidateConfig) -> int | None:
     """First checked frame (every self_intersection_every-th) where a cloth mesh edge crosses a
-    non-adjacent triangle of the same mesh (warp BVH ray casts on validate.device, see self_intersection.py)."""
+    non-adjacent triangle of the same mesh (one grouped BVH over the checked frames on validate.device,
+    see self_intersection.py)."""
     slices = scene.vertex_slices()
     cloth = [(slices[n], m.faces, unique_edges(m.faces)) for n, m in scene.objects.items()
              if scene.object_kinds[n] == "cloth"]
     device = resolve_warp_device(cfg.device, "validate.device") if cloth else "cpu"
-    for t in range(0, len(ep.x), cfg.self_intersection_every):
-        for sl, faces, edges in cloth:
-            if (crossing_edges(ep.x[t, sl], faces, edges, device) >= 0).any():
-                return t
-    return None
+    checked = np.arange(0, len(ep.x), cfg.self_intersection_every)
+    first = [first_crossing_frame(ep.x[checked][:, sl], faces, edges, device) for sl, faces, edges in cloth]
+    hits = [checked[k] for k in first if k is not None]
+    return int(min(hits)) if hits else None
 
 
 def finger_pad_boxes(scene: Scene, link_poses: np.ndarray, side: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
