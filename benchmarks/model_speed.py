@@ -37,7 +37,7 @@ from wc.agent.runner import episode_seed
 from wc.config import add_params_arguments, load_section, read_params
 from wc.data.store import TrajectoryStore, TrajectoryWriter
 from wc.dynamics import ObjectState
-from wc.eval.predictors import WorldContactPredictor
+from wc.model.predictor import WorldContactPredictor
 from wc.model.config import ModelConfig
 from wc.model.learned_dynamics import LearnedDynamics
 from wc.model.prescribed_inputs import RecordedInputs

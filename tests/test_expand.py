@@ -290,7 +290,7 @@ def test_parents_of_the_proposed_cell_come_first():
 
 def test_max_sources_takes_the_first_accepted_episodes_in_store_order(params, store_path):
     from wc.expand import source_episodes
-    from wc.validate.stage import EpisodeScenes
+    from wc.scene.episode_scenes import EpisodeScenes
 
     store = TrajectoryStore(store_path)
     task = get_task(TASK, params)

@@ -22,7 +22,8 @@ from wc.scene.piper import ARM_BODY_NAMES
 from wc.scene.scene import build_scene
 from wc.validate import PREDICATES
 from wc.validate.split import split_counts, split_episodes
-from wc.validate.stage import EpisodeScenes, NoAcceptedEpisodesError, episode_state, validate
+from wc.scene.episode_scenes import EpisodeScenes
+from wc.validate.stage import NoAcceptedEpisodesError, episode_state, validate
 
 T = 10
 HELD = {"cube": {"link": "right_link6", "local_pose": [0.0, 0.0, 0.1, 0.0, 0.0, 0.0, 1.0]}}

@@ -16,7 +16,7 @@ import torch
 from tests.synthetic_store import write_synthetic_store
 from wc.config import load_section, read_params
 from wc.data.store import TrajectoryStore
-from wc.eval.predictors import WorldContactPredictor
+from wc.model.predictor import WorldContactPredictor
 from wc.model.layout import scene_layout
 from wc.train.config import TrainConfig
 from wc.train.data import episode_phases, read_phase_window

@@ -20,7 +20,7 @@ from wc.train.config import TrainConfig
 from wc.train.data import LayoutKey, Phase, episode_phases, phases_of, read_phase_window
 from wc.train.loop import prepare_data
 from wc.validate.predicates import cloth_rows
-from wc.validate.stage import EpisodeScenes, episode_held
+from wc.scene.episode_scenes import EpisodeScenes, episode_held
 
 
 @dataclass(frozen=True)

@@ -42,7 +42,7 @@ from wc.eval.penetration import PenetrationTally, cloth_signed_distance, penetra
 from wc.eval.plots import SPEED_ACCURACY_HEADER, plot_speed_accuracy, plot_stability, speed_accuracy_rows
 from wc.eval.methods import LearnedMethod, Method, load_method, predict
 from wc.eval.newton_method import NewtonMethod
-from wc.eval.predictors import WorldContactPredictor
+from wc.model.predictor import WorldContactPredictor
 from wc.eval.stability import (CSV_HEADER, StabilityCurve, csv_rows, divergence_summary, first_divergence,
                               max_edge_strain)
 from wc.model.config import ModelConfig

@@ -10,7 +10,7 @@ import numpy as np
 import torch
 
 from wc.agent.runner import pad_to_length
-from wc.eval.predictors import Predictor
+from wc.model.predictor import Predictor
 from wc.expand.plan import PlannedEpisode
 from wc.model.layout import SceneLayout
 from wc.model.learned_dynamics import LearnedDynamics

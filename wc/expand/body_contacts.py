@@ -15,7 +15,7 @@ import torch
 from torch import Tensor
 
 from wc.expand.contact import BOX_NORMALS, Bodies
-from wc.expand.element_pairs import host_checks
+from wc.expand.cloth_elements import host_checks
 from wc.rotations import quat_matrices_torch, quat_multiply_torch, quat_rotate_torch
 from wc.validate.predicates import cloth_rows, convex_planes, robot_box_shapes
 

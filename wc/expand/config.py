@@ -11,6 +11,34 @@ Range = tuple[float, float]
 
 
 @dataclass(frozen=True)
+class SlotConfig:
+    """The slot engine (`engine: slots`, wc.expand.slot_expansion): the episodes of a batch run in slots that refill
+    as episodes end or fail; the projection runs fixed pass counts (the reference loop stops once converged)."""
+
+    sync_every: int = 8  # frames between the host's reads of the slots' first failures (one sync each)
+    plans_ahead: int = 0  # episodes proposed and not yet filed at most (0: twice batch_size)
+    planner_workers: int = 0  # planning processes beside the rollouts (0: in the stage's process)
+    bf16: bool = True  # the network in bf16 autocast (CUDA; the state stays fp32)
+    cuda_graph: bool = True  # each part of a frame captured as a CUDA graph (CUDA)
+    iterations: int = 10  # joint projection passes (edges, contacts, self-contact) per step
+    final_edge_passes: int = 20  # edge-only passes after them
+    bounded_rounds: int = 2  # bounded step: distance measurements and tries at the rest of the step
+    bounded_passes: int = 10  # bounded step: Jacobi passes per round
+    rollback_rounds: int = 6  # rollback rounds (a shorter step for a ring wider each round)
+    vertex_pairs: int = 16  # candidate triangles kept per cloth vertex (self-contact, bounded step)
+    edge_pairs: int = 16  # candidate edges kept per cloth edge (bounded step)
+    pair_capacity: int = 4096  # near pairs per episode the passes handle on CUDA (overflow is counted)
+
+    def validate(self) -> None:
+        for name in ("sync_every", "iterations", "bounded_passes", "vertex_pairs", "edge_pairs", "pair_capacity"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"slots.{name} must be >= 1, got {getattr(self, name)}")
+        for name in ("plans_ahead", "planner_workers", "final_edge_passes", "bounded_rounds", "rollback_rounds"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"slots.{name} must be >= 0, got {getattr(self, name)}")
+
+
+@dataclass(frozen=True)
 class ExpandConfig:
     """World-model data expansion of one task's source episodes (wc.expand.stage)."""
 
@@ -45,6 +73,10 @@ class ExpandConfig:
     executor: str = "local"  # local: in this process; ray: each batch's rollouts and checks as a Ray task
     batches_in_flight: int = 1  # batches planned before the earlier ones' verdicts are filed (1: each plan sees every
     # earlier verdict); the episodes depend on it, not on the executor
+    # slots: batch_size slots refilled as episodes end or fail, fixed-pass projection, checks on the device
+    # (wc.expand.slot_expansion; local executor); batches: batch by batch, the reference (wc.expand.worker)
+    engine: str = "slots"
+    slots: SlotConfig = SlotConfig()
 
     def validate(self) -> None:
         if not self.task:
@@ -84,3 +116,13 @@ class ExpandConfig:
         check_executor(self.executor)
         if self.batches_in_flight < 1:
             raise ValueError(f"batches_in_flight must be >= 1, got {self.batches_in_flight}")
+        if self.engine not in ("slots", "batches"):
+            raise ValueError(f"engine must be slots or batches, got {self.engine!r}")
+        if self.engine == "slots":
+            if self.executor != "local":
+                raise ValueError(f"engine slots runs in the stage's process: executor must be local, got "
+                                 f"{self.executor!r} (engine batches runs on ray)")
+            if self.projection != "joint" or self.pad_carry:
+                raise ValueError("engine slots projects jointly without pad carry (projection joint, pad_carry false); "
+                                 "use engine batches for the others")
+        self.slots.validate()

@@ -15,7 +15,7 @@ one interval. So a projected vertex passes the penetration check. Torch, batched
 the rigid-object poses are fitted on the CPU, as the check fits them.
 
 Nothing here is bag-specific: it acts on the scene's cloth objects (`cloth_rows`) and whatever bodies it has.
-`ContactProjectedPredictor` wraps any Predictor (wc.eval.predictors) and steps it one frame at a time.
+`ContactProjectedPredictor` wraps any Predictor (wc.model.predictor) and steps it one frame at a time.
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from wc.eval.predictors import Predictor
+from wc.model.predictor import Predictor
 from wc.model.layout import SceneLayout
 from wc.scene.scene import Scene
 from wc.rotations import quat_matrices
@@ -164,7 +164,7 @@ class ContactProjection:
 class ContactProjectedPredictor:
     """Any Predictor followed, after every predicted frame, by the contact projection of `scene`.
 
-    rollout(layout, x0, v0, poses, dt) as wc.eval.predictors.Predictor: layout.objects must be the scene's
+    rollout(layout, x0, v0, poses, dt) as wc.model.predictor.Predictor: layout.objects must be the scene's
     objects and layout.bodies must hold every scene.link_names body; like WorldContact, the batch stops at the
     first step where an episode turns non-finite (the remaining frames stay NaN)."""
 

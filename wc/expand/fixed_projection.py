@@ -24,7 +24,7 @@ from torch import Tensor
 
 from wc.expand.body_contacts import DeviceBodies, push_out
 from wc.expand.constraints import edge_colours, edge_pass
-from wc.expand.element_pairs import ClothElements, compact, host_checks
+from wc.expand.cloth_elements import ClothElements, compact, host_checks
 from wc.expand.fixed_untangle import BoundedStep, Rollback
 from wc.expand.self_contact import barycentric, ring_pairs
 from wc.validate.cloth_bvh import ClothBVH
@@ -190,13 +190,12 @@ class FixedStepProjection:
         return b, el.vertices[vi], el.faces[slots.reshape(-1)[idx].clamp_min(0).long()], valid
 
     @torch.no_grad()
-    def project(self, x_prev: Tensor, x: Tensor, v: Tensor, link_poses: Tensor, dt: float
-                ) -> tuple[Tensor, Tensor, Tensor]:
-        """Projected (x, v) (B, N, 3) of a predicted step from x_prev under link poses (B, L, 7) at the step's end,
-        and crossing (B,) bool: a self-crossing the rollback could not undo (the frame fails the check)."""
+    def joint(self, x_prev: Tensor, x: Tensor, v: Tensor, link_poses: Tensor, dt: float) -> tuple[Tensor, Tensor]:
+        """Part 1 (module docstring): edges, contacts and self-contact of a predicted step x, v (B, N, 3) from x_prev
+        under link poses (B, L, 7) at the step's end."""
         if self.bvh is None:
             raise RuntimeError("fixed projection: call prepare(x) with the batch's states first")
-        cfg, el, s = self.cfg, self.elements, self.stats
+        cfg, s = self.cfg, self.stats
         cloth = self.bodies.cloth
         bodies = self.bodies.pose(link_poses, x)
         self._keep_max("max_strain_before", self.strain(x))
@@ -227,14 +226,24 @@ class FixedStepProjection:
             edge_pass(out, inv_mass, self.colours, self.lo, self.hi, edge_shift)
         v_out = v + edge_shift / dt
         inward = (v_out * normal).sum(-1, keepdim=True).clamp_max(0.0)
-        v_out = torch.where(pushed[..., None], v_out - inward * normal, v_out)
-        if self.bounded is not None:
-            out, v_out = self.bounded.apply(self.bvh, x_prev, out, v_out, dt, s)
-        if cfg.rollback_rounds:
-            out, v_out, crossing = self.rollback.apply(self.bvh, x_prev, out, v_out, s)
-        else:
-            crossing = self.rollback.crossings(self.bvh, out)[1]
         s["steps"] += 1
-        self._keep_max("max_strain_after", self.strain(out))
-        self._keep_max("max_depth_after_m", self.bodies.depth(out, bodies))
-        return out, v_out, crossing
+        return out, torch.where(pushed[..., None], v_out - inward * normal, v_out)
+
+    @torch.no_grad()
+    def untangle(self, x_prev: Tensor, x: Tensor, v: Tensor, dt: float) -> tuple[Tensor, Tensor, Tensor]:
+        """Part 2: the bounded step from x_prev towards the jointly projected x, v, then the rollback; also the
+        crossing (B,) bool a rollback could not undo (the frame fails the self-intersection check)."""
+        if self.bounded is not None:
+            x, v = self.bounded.apply(self.bvh, x_prev, x, v, dt, self.stats)
+        if self.cfg.rollback_rounds:
+            x, v, crossing = self.rollback.apply(self.bvh, x_prev, x, v, self.stats)
+        else:
+            crossing = self.rollback.crossings(self.bvh, x)[1]
+        self._keep_max("max_strain_after", self.strain(x))
+        return x, v, crossing
+
+    def project(self, x_prev: Tensor, x: Tensor, v: Tensor, link_poses: Tensor, dt: float
+                ) -> tuple[Tensor, Tensor, Tensor]:
+        """`joint` then `untangle`: projected (x, v) (B, N, 3) and the crossing flags (B,)."""
+        x, v = self.joint(x_prev, x, v, link_poses, dt)
+        return self.untangle(x_prev, x, v, dt)

@@ -18,7 +18,7 @@ import torch
 from torch import Tensor
 
 from wc.expand.crossing_free import point_triangle_distance, segment_segment_distance
-from wc.expand.element_pairs import ClothElements, compact, host_checks
+from wc.expand.cloth_elements import ClothElements, compact, host_checks
 from wc.validate.cloth_bvh import ClothBVH
 
 

@@ -23,7 +23,7 @@ from wc.scene.scene import Scene
 from wc.tasks.base import EpisodeSpec, InfeasibleEpisode, Task
 from wc.validate.config import ValidateConfig
 from wc.validate.predicates import Episode, cloth_rows, penetration, table_and_robot_distance
-from wc.validate.stage import EpisodeScenes
+from wc.scene.episode_scenes import EpisodeScenes
 
 LAYOUT_ATTRS = ("objects", "links", "held")  # episode attrs a generated episode inherits from its parent
 START_TOL = 1e-4  # rad or m: a redrawn pre-settle state must reproduce the stored frame-0 action this closely

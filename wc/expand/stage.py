@@ -34,8 +34,11 @@ from wc.agent.planner import CoveragePlanner
 from wc.config import load_section, params_hash, without_keys
 from wc.data.store import TrajectoryStore, TrajectoryWriter
 from wc.distributed import UnitsFailed, Unit, WorkerSpec, drive, every_unit, open_executor, uses_cuda
-from wc.eval.predictors import CHECKPOINT
+from wc.model.predictor import CHECKPOINT
 from wc.expand.config import ExpandConfig
+from wc.expand.generated_store import copy_scene, episode_attrs
+from wc.expand.slot_expansion import SlotExpansion
+from wc.expand.slot_stage import SlotModel, run_slots
 from wc.expand.plan import PlannedEpisode, SourceEpisode, pick_parent, plan_episode, source_episodes
 from wc.expand.worker import Counters, ExpandBatch, ExpandWorker, load_expand_worker, merged_counters
 from wc.paths import EXPAND
@@ -46,7 +49,7 @@ from wc.seeds import SeedStream, episode_seed
 from wc.tasks.base import UNREACHABLE, InfeasibleEpisode, Task, get_task
 from wc.validate.config import ValidateConfig
 from wc.validate.predicates import PREDICATES
-from wc.validate.stage import EpisodeScenes
+from wc.scene.episode_scenes import EpisodeScenes
 
 SECTIONS = ["expand", "scene", "tasks", "validate", "train", "sim"]
 
@@ -54,20 +57,6 @@ SECTIONS = ["expand", "scene", "tasks", "validate", "train", "sim"]
 def _checkpoint_info(model_dir: Path) -> dict[str, Any]:
     config = json.loads(model_dir.joinpath(CHECKPOINT).with_suffix(".json").read_text())
     return {"path": str(model_dir), **{k: config.get(k) for k in ("params_hash", "step", "stage", "projection", "dt")}}
-
-
-def _copy_scene(src: TrajectoryStore, writer: TrajectoryWriter) -> None:
-    for o in src.objects.values():
-        writer.add_object(o.name, o.rest_positions, o.faces, o.rest_uv, o.vertex_area, o.kind, o.tag, o.material)
-    for p in src.prescribed.values():
-        writer.add_prescribed(p.name, p.local_points, p.local_normals, p.tag, p.link)
-
-
-def _episode_attrs(planned: PlannedEpisode, source: SourceEpisode, failure: str | None = None) -> dict[str, Any]:
-    s = planned.spec
-    return {"task": s.task, "seed": s.seed, "cell": s.cell, "speed": s.speed, "amplitude": s.amplitude,
-            "split": "train", "accepted": failure is None, "first_failure": failure, "source": "worldcontact",
-            "parent": planned.parent, "yaw_deg": planned.yaw_deg, "shift_m": list(planned.shift_m), **source.layout}
 
 
 class ExpandPlans:
@@ -138,9 +127,9 @@ class ExpandPlans:
                                       "reason": failure[0], "frame": failure[1], "frames": len(r.x), **detail})
                 if self.rejected_writer is not None:
                     self.rejected_writer.add_episode(r.x, r.v, r.action, r.link_poses, r.env_poses,
-                                                     **_episode_attrs(p, source, failure[0]))
+                                                     **episode_attrs(p, source, failure[0]))
                 continue
-            self.writer.add_episode(r.x, r.v, r.action, r.link_poses, r.env_poses, **_episode_attrs(p, source))
+            self.writer.add_episode(r.x, r.v, r.action, r.link_poses, r.env_poses, **episode_attrs(p, source))
             self.accepted += 1
             self.bar.update(1)
         self.bar.set_postfix(generated=self.generated, rejected=self.generated - self.accepted)
@@ -178,14 +167,7 @@ def expand(params: dict[str, Any], model_dir: str | Path = EXPAND["model"], stor
     if checkpoint["dt"] is not None and abs(float(checkpoint["dt"]) - dt) > 1e-9:
         raise ValueError(f"{model_dir}: the model was trained at frame dt {checkpoint['dt']} s, {store} has {dt} s")
     phash = params_hash(without_keys(params, "expand", ("executor",)), SECTIONS)
-    if cfg.executor == "local":  # the model loads before any output, as it always did
-        local = ExpandWorker(params, model_dir, scene, src)
-        worker = WorkerSpec("expand", lambda: local)
-    else:  # each Ray worker process loads the model once for this run
-        worker = WorkerSpec(f"expand:{secrets.token_hex(8)}", load_expand_worker,
-                            (params, str(model_dir.resolve()), str(store.resolve())))
-    plans = ExpandPlans(task, scene, sources, cfg, validate_cfg, dt, max(0, cfg.target_trajectories - len(sources)),
-                        worker, started)
+    wanted = max(0, cfg.target_trajectories - len(sources))
 
     def writer_to(path: Path | None) -> TrajectoryWriter | nullcontext[None]:
         if path is None:
@@ -195,6 +177,26 @@ def expand(params: dict[str, Any], model_dir: str | Path = EXPAND["model"], stor
                                 link_names=src.link_names, env_names=src.env_names,
                                 chunk_frames=src.chunk_frames(sources[0].eid))
 
+    if cfg.engine == "slots":
+        model = SlotModel(params, model_dir, scene, src, sources, cfg, validate_cfg)  # loads before any output
+        with writer_to(out) as writer, writer_to(rejected_out) as rejected_writer:
+            for w in (writer, rejected_writer):
+                if w is not None:
+                    copy_scene(src, w)
+            slots = run_slots(params, model, task, scene, sources, wanted, writer, rejected_writer, started)
+        result = {**_report(slots, cfg, sources, checkpoint, store, out, rejected_out, phash, {"name": "local"},
+                            str(model.device), environment_info(str(model.device)), time.perf_counter() - started),
+                  "engine": "slots", "slots": cfg.batch_size, "restarts": slots.restarts, "timing": slots.timing()}
+        write_json_atomic(report, result)
+        return result
+    if cfg.executor == "local":  # the model loads before any output, as it always did
+        local = ExpandWorker(params, model_dir, scene, src)
+        worker = WorkerSpec("expand", lambda: local)
+    else:  # each Ray worker process loads the model once for this run
+        worker = WorkerSpec(f"expand:{secrets.token_hex(8)}", load_expand_worker,
+                            (params, str(model_dir.resolve()), str(store.resolve())))
+    plans = ExpandPlans(task, scene, sources, cfg, validate_cfg, dt, wanted, worker, started)
+
     failed = None
     with open_executor(cfg.executor, params, uses_cuda(cfg.device, validate_cfg.device)) as executor:
         try:
@@ -203,22 +205,22 @@ def expand(params: dict[str, Any], model_dir: str | Path = EXPAND["model"], stor
                     every_unit(executor, "expand"):
                 for w in (plans.writer, plans.rejected_writer):
                     if w is not None:
-                        _copy_scene(src, w)
+                        copy_scene(src, w)
                 for _ in drive(executor, [plans], cfg.batches_in_flight):
                     pass
         except UnitsFailed as err:
             failed = err
     where = ((str(local.device), local.environment) if cfg.executor == "local"  # ray: where a unit ran, if one did
              else (plans.device or cfg.device, plans.environment or environment_info("cpu")))
-    result = _report(plans, cfg, sources, checkpoint, store, out, rejected_out, phash, executor.report(), *where,
-                     time.perf_counter() - started)
+    result = {**_report(plans, cfg, sources, checkpoint, store, out, rejected_out, phash, executor.report(), *where,
+                        time.perf_counter() - started), "engine": "batches"}
     write_json_atomic(report, result)
     if failed is not None:
         raise failed
     return result
 
 
-def _report(plans: ExpandPlans, cfg: ExpandConfig, sources: list[SourceEpisode], checkpoint: dict[str, Any],
+def _report(plans: ExpandPlans | SlotExpansion, cfg: ExpandConfig, sources: list[SourceEpisode], checkpoint: dict[str, Any],
             store: Path, out: Path, rejected_out: Path | None, phash: str, executor: dict[str, Any],
             device: str, environment: dict[str, str], wall: float) -> dict[str, Any]:
     """The stage's report (reports/expand.json)."""

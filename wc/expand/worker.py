@@ -15,7 +15,7 @@ import torch
 from wc.config import load_section
 from wc.data.store import TrajectoryStore
 from wc.devices import resolve_device, resolve_warp_device
-from wc.eval.predictors import WorldContactPredictor
+from wc.model.predictor import WorldContactPredictor
 from wc.expand.batched_rollout import Rollout, rollout_batch
 from wc.expand.carry import PadCarry
 from wc.expand.config import ExpandConfig
@@ -35,7 +35,7 @@ from wc.train.config import TrainConfig
 from wc.validate.config import ValidateConfig
 from wc.validate.failure_detail import failure_detail
 from wc.validate.predicates import Episode, first_failure
-from wc.validate.stage import EpisodeScenes
+from wc.scene.episode_scenes import EpisodeScenes
 
 Counters = dict[str, dict[str, float]]  # the projection's counters by part: projection, untangle, then
 

@@ -18,7 +18,7 @@ from wc.model.layout import SceneLayout
 from wc.model.prescribed_inputs import PrescribedInputs
 
 if TYPE_CHECKING:
-    from wc.eval.predictors import Predictor
+    from wc.model.predictor import Predictor
 
 
 def finite_rollout(predictor: Predictor, layout: SceneLayout, x0: np.ndarray, v0: np.ndarray, poses: np.ndarray,

@@ -49,14 +49,12 @@ class PaddedNeighbors:
     """Neighbours of N queries in K slots: row i holds i's neighbours in ascending index order, then padding.
 
     index (N, K) int64 into points (padding slots hold 0); valid (N, K) bool; overflow () int64: queries with
-    more than K neighbours plus (query, cell) visits of cells with more than C points (0: nothing dropped);
-    dropped (N,) bool: the queries that lost a neighbour (too many, or a visited cell over capacity).
+    more than K neighbours plus (query, cell) visits of cells with more than C points (0: nothing dropped).
     """
 
     index: Tensor
     valid: Tensor
     overflow: Tensor
-    dropped: Tensor | None = None
 
 
 def _cell_width(radius: float) -> float:
@@ -133,9 +131,8 @@ def _search_chunk(q32: Tensor, p32: Tensor, grid: _SortedGrid, cells: Tensor, ba
     if exclude_self:
         keep = keep & (j != qi)
     index, valid = _select_sorted(j, keep, m, capacity.max_neighbors)
-    too_many = keep.sum(1) > capacity.max_neighbors
-    dropped = too_many | (end - start > c).any(1)
-    return PaddedNeighbors(index, valid, too_many.sum() + cell_overflow, dropped)
+    query_overflow = (keep.sum(1) > capacity.max_neighbors).sum()
+    return PaddedNeighbors(index, valid, query_overflow + cell_overflow)
 
 
 def _check_search(query: Tensor, points: Tensor, radius: float, capacity: NeighborCapacity, query_batch: Tensor,
@@ -172,8 +169,7 @@ def padded_radius_neighbors(query: Tensor, points: Tensor, radius: float, capaci
     if n == 0 or m == 0:
         return PaddedNeighbors(torch.zeros(n, k, dtype=torch.long, device=device),
                                torch.zeros(n, k, dtype=torch.bool, device=device),
-                               torch.zeros((), dtype=torch.long, device=device),
-                               torch.zeros(n, dtype=torch.bool, device=device))
+                               torch.zeros((), dtype=torch.long, device=device))
     q32 = query.detach().to(torch.float32)
     p32 = points.detach().to(torch.float32)
     grid = _sorted_grid(p32, point_batch, radius)
@@ -184,7 +180,7 @@ def padded_radius_neighbors(query: Tensor, points: Tensor, radius: float, capaci
     parts = [_search_chunk(q32, p32, grid, cells[s:s + rows], query_batch[s:s + rows], s, radius, capacity,
                            exclude_self) for s in range(0, n, rows)]
     return PaddedNeighbors(torch.cat([p.index for p in parts]), torch.cat([p.valid for p in parts]),
-                           torch.stack([p.overflow for p in parts]).sum(), torch.cat([p.dropped for p in parts]))
+                           torch.stack([p.overflow for p in parts]).sum())
 
 
 @torch.no_grad()

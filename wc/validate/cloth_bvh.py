@@ -242,6 +242,7 @@ class ClothBVH:
     def __init__(self, x: torch.Tensor, faces: torch.Tensor, face_mesh: torch.Tensor, edges: torch.Tensor,
                  edge_mesh: torch.Tensor, vertices: torch.Tensor, vertex_mesh: torch.Tensor, meshes: int) -> None:
         wp.init()
+        self._streams: dict[int, wp.Stream] = {}
         dev = x.device
         self.batch, self.rows = int(x.shape[0]), int(x.shape[1])
         self.nf, self.ne, self.nv = len(faces), len(edges), len(vertices)
@@ -269,9 +270,13 @@ class ClothBVH:
                                    groups=self.edge_group) if self.ne else None
 
     def _stream(self):  # noqa: ANN202 - warp launches on torch's current stream (a CUDA graph capture records them)
-        if self.device.is_cuda:
-            return wp.ScopedStream(wp.stream_from_torch(torch.cuda.current_stream(self.device.ordinal)))
-        return wp.ScopedDevice(self.device)
+        if not self.device.is_cuda:
+            return wp.ScopedDevice(self.device)
+        current = torch.cuda.current_stream(self.device.ordinal)
+        if current.cuda_stream not in self._streams:
+            self._streams[current.cuda_stream] = wp.stream_from_torch(current)
+        # no event wait on warp's own stream: that stream is not part of a capture
+        return wp.ScopedStream(self._streams[current.cuda_stream], sync_enter=False)
 
     def _points(self, x: torch.Tensor):  # noqa: ANN202
         if tuple(x.shape) != (self.batch, self.rows, 3) or x.dtype != torch.float32:

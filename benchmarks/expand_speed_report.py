@@ -1,0 +1,69 @@
+"""The expansion-speed benchmark's table and chart (benchmarks/expand_speed.py)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from wc.reports import pyplot, save_figure_atomic
+
+
+def _f(value: Any, fmt: str = ".1f") -> str:
+    return "-" if value is None else format(value, fmt)
+
+
+def markdown(report: dict[str, Any]) -> str:
+    """The report as a short page: the headline rows, Newton per worlds count, the expansion and its timing."""
+    env = report["environment"]
+    lines = [f"# Accepted {report['task']} episodes per minute: Newton against the world model's expansion", "",
+             f"{env.get('gpu', env.get('device'))}; torch {env.get('torch')}, warp {env.get('warp')}, newton "
+             f"{env.get('newton')}. {report['what']}.", "",
+             "| vertices | Newton accepted/min (worlds) | WorldContact accepted/min | ratio | acceptance | teacher "
+             "agreement (plans) | RMS to Newton mm |", "|---|---|---|---|---|---|---|"]
+    for r in report["rows"]:
+        lines.append(f"| {r['vertices']} | {_f(r['newton_accepted_per_min'])} ({r['newton_worlds']}) | "
+                     f"{_f(r['worldcontact_accepted_per_min'])} | {_f(r['ratio'], '.2f')} | {_f(r['acceptance'], '.2f')} "
+                     f"| {_f(r['teacher_agreement'], '.2f')} ({r['teacher_plans']}) | {_f(r['teacher_rms_mm'])} |")
+    lines += ["", "## Newton per worlds count (reset, settle, plan, simulate, checks; after a warm-up batch)", "",
+              "| worlds | episodes | accepted | s | accepted/min | episodes/min | acceptance |",
+              "|---|---|---|---|---|---|---|"]
+    for r in report["newton"]:
+        lines.append(f"| {r['worlds']} | {r['episodes']} | {r['accepted']} | {r['seconds']:.1f} | "
+                     f"{r['accepted_per_min']:.1f} | {r['episodes_per_min']:.1f} | {r['acceptance']:.2f} |")
+    e = report.get("expand")
+    if e:
+        lines += ["", f"## The expansion ({e['engine']} engine, {e.get('slots')} slots)", "",
+                  f"{e['accepted']} of {e['generated']} generated accepted in {e['wall_s']:.1f} s "
+                  f"({e['accepted_per_min']:.1f} per minute); rejections: "
+                  f"{', '.join(f'{k} {v}' for k, v in e['rejections'].items() if v) or 'none'}; restarts "
+                  f"{e.get('restarts')}.", "", "| phase | s |", "|---|---|"]
+        lines += [f"| {k} | {v:.2f} |" for k, v in (e.get("timing") or {}).items()]
+    t = report.get("teacher")
+    if t:
+        lines += ["", f"Teacher check: {t['plans']} plans, agreement {_f(t['agreement'], '.2f')}, precision "
+                      f"{_f(t['precision'], '.2f')}, recall {_f(t['recall'], '.2f')}, Newton accepts "
+                      f"{_f(t['newton_accepts'], '.2f')} (one verdict for all: {_f(t['constant_agreement'], '.2f')}), "
+                      f"mean RMS {_f(1e3 * t['mean_rms_error_m'] if t['mean_rms_error_m'] is not None else None)} mm."]
+    return "\n".join(lines) + "\n"
+
+
+def chart(report: dict[str, Any], path: Path) -> None:
+    """Accepted episodes per minute of Newton (each worlds count) and of the expansion, with the ratio."""
+    plt = pyplot()
+    fig, ax = plt.subplots(figsize=(6.4, 3.6))
+    labels = [f"Newton {r['worlds']} worlds" for r in report["newton"]]
+    values = [r["accepted_per_min"] for r in report["newton"]]
+    colors = ["tab:gray"] * len(values)
+    for r in report["rows"]:
+        labels.append(f"WorldContact ({r['vertices']} v)")
+        values.append(r["worldcontact_accepted_per_min"])
+        colors.append("tab:blue")
+    ax.barh(labels, values, color=colors)
+    for y, v in enumerate(values):
+        ax.text(v, y, f" {v:.0f}", va="center")
+    ratios = ", ".join(f"{r['ratio']:.1f}x at {r['vertices']} vertices" for r in report["rows"] if r["ratio"])
+    ax.set_xlabel("accepted episodes per minute (checks included)")
+    ax.set_title(f"{report['task']}: world model vs Newton ({ratios})", fontsize=10)
+    fig.tight_layout()
+    save_figure_atomic(fig, path)
+    plt.close(fig)

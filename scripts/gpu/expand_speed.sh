@@ -1,0 +1,32 @@
+#!/bin/bash
+# The expansion-speed benchmark (benchmarks/expand_speed.py) on a bare GPU machine, as calls of at most 10 minutes:
+#   bash scripts/gpu/expand_speed.sh start   # wheels (/tmp/gpu/part-*) and Newton's kernel cache unpacked, a smoke
+#                                            # expansion on the GPU, then the benchmark in the background
+#   bash scripts/gpu/expand_speed.sh wait    # wait up to WAIT seconds (default 540); progress and reports to $OUT
+# Settings: ITERATIONS (Newton's VBD iterations, default 20: converged lifts), WORLDS (Newton's worlds counts, default
+# 32,64,128), SLOTS (expand.batch_size, default 128), PLANNERS (planning processes, default 8), NEWTON_S (measured
+# Newton seconds per worlds count, default 45), EXTRA (more --set overrides), NAME (report name, default h100).
+cd "$(dirname "$0")/../.."
+export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1
+R=/tmp/expand_speed; mkdir -p $R "${OUT:-$R/out}"
+NAME=${NAME:-h100}
+SETS=(--set sim.device=cuda --set validate.device=cuda --set expand.device=cuda --set sim.iterations=${ITERATIONS:-20}
+  --set expand.batch_size=${SLOTS:-128} --set expand.slots.planner_workers=${PLANNERS:-8} --set sim.worlds=64 ${EXTRA:-})
+case "$1" in
+  start)
+    cat /tmp/gpu/part-* | xz -dc -T0 | tar x -C / || exit 1
+    mkdir -p ~/.cache/warp && xz -dc scripts/gpu/kernel_cache/warp-1.19.0_newton-1.8.0_sm90.tar.xz | tar x -C ~/.cache/warp --skip-old-files
+    nvidia-smi --query-gpu=name,memory.used --format=csv
+    python3 -m benchmarks.expand_smoke --device cuda --out $R/smoke.json || exit 1
+    cp $R/smoke.json "$OUT"/ 2>/dev/null
+    setsid nohup python3 -m benchmarks.expand_speed --params params.yaml "${SETS[@]}" --worlds ${WORLDS:-32,64,128} \
+      --newton-seconds ${NEWTON_S:-45} --work $R/work --out $R/expand_speed_$NAME.json > $R/bench.log 2>&1 < /dev/null &
+    echo $! > $R/bench.pid
+    sleep ${FIRST_WAIT:-300}; tail -c 1500 $R/bench.log | tr '\r' '\n' | tail -15 ;;
+  wait)
+    end=$((SECONDS + ${WAIT:-540}))
+    while kill -0 "$(cat $R/bench.pid)" 2>/dev/null && [ $SECONDS -lt $end ]; do sleep 5; done
+    tail -c 3000 $R/bench.log | tr '\r' '\n' | grep -v "it/s\]$" | tail -30
+    cp $R/expand_speed_$NAME.* $R/work/expand.json "$OUT"/ 2>/dev/null; ls "$OUT" ;;
+  *) echo "usage: $0 start|wait" >&2; exit 2 ;;
+esac

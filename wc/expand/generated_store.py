@@ -1,0 +1,25 @@
+"""Writing generated episodes: the source store's scene copied into a generated store, and the attrs a generated
+episode carries (its spec, parent, rigid move and verdict), whichever engine generated it."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from wc.data.store import TrajectoryStore, TrajectoryWriter
+from wc.expand.plan import PlannedEpisode, SourceEpisode
+
+
+def copy_scene(src: TrajectoryStore, writer: TrajectoryWriter) -> None:
+    """The objects and prescribed sample sets of `src` into `writer`."""
+    for o in src.objects.values():
+        writer.add_object(o.name, o.rest_positions, o.faces, o.rest_uv, o.vertex_area, o.kind, o.tag, o.material)
+    for p in src.prescribed.values():
+        writer.add_prescribed(p.name, p.local_points, p.local_normals, p.tag, p.link)
+
+
+def episode_attrs(planned: PlannedEpisode, source: SourceEpisode, failure: str | None = None) -> dict[str, Any]:
+    """A generated episode's attrs: accepted when failure is None, else its first failing check."""
+    s = planned.spec
+    return {"task": s.task, "seed": s.seed, "cell": s.cell, "speed": s.speed, "amplitude": s.amplitude,
+            "split": "train", "accepted": failure is None, "first_failure": failure, "source": "worldcontact",
+            "parent": planned.parent, "yaw_deg": planned.yaw_deg, "shift_m": list(planned.shift_m), **source.layout}

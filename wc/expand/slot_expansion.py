@@ -1,0 +1,268 @@
+"""The expand stage's host loop on the slot engine (`expand.engine: slots`): proposals, planning, slots, verdicts,
+writing, with the device never waiting for the host where it can be avoided.
+
+- Proposals: the coverage planner proposes episode i from the verdicts of the episodes filed before it; at most
+  `plans_ahead` episodes are proposed and not yet filed, and verdicts are filed in proposal order, so the episodes
+  depend on the params and the seed alone (not on timing).
+- Planning runs in a pool (wc.expand.plan_pool) while the device rolls out the slots (wc.expand.slot_rollout).
+- Every `sync_every` frames the host reads the slots' first failures (one sync); a slot whose episode ended or failed
+  gives its trajectory back and takes the next planned episode; the episode's verdict is completed on the host
+  (wc.expand.slot_verdicts) and filed in order; accepted episodes are written by a writer thread.
+- Wall time per phase (planning, device wait, verdicts, loading, I/O) and device time per part of a frame
+  (network, projection, untangle, checks) go into the report.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+from concurrent.futures import Future, ThreadPoolExecutor
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from wc.agent.planner import CoveragePlanner
+from wc.expand.config import ExpandConfig
+from wc.expand.frame_checks import NEVER
+from wc.expand.phase_timer import PhaseTimer
+from wc.expand.plan import PlannedEpisode, SourceEpisode, pick_parent
+from wc.expand.plan_pool import PlanPool, PlanResult
+from wc.expand.slot_rollout import SlotPlan, SlotRollout
+from wc.expand.slot_verdicts import slot_verdict
+from wc.scene.scene import Scene
+from wc.seeds import SeedStream, episode_seed
+from wc.tasks.base import UNREACHABLE, EpisodeSpec, Task
+from wc.validate.config import ValidateConfig
+from wc.validate.failure_detail import failure_detail
+from wc.validate.predicates import PREDICATES, Episode
+
+
+@dataclass
+class _Proposed:
+    index: int
+    spec: EpisodeSpec
+    source: SourceEpisode
+    plan: Future[PlanResult]
+
+
+@dataclass
+class _Running:
+    index: int
+    spec: EpisodeSpec
+    source: SourceEpisode
+    planned: PlannedEpisode
+    poses: np.ndarray  # (T, P, 7)
+
+    def slot_plan(self) -> SlotPlan:
+        return SlotPlan(self.planned.x0, self.poses)
+
+
+@dataclass
+class _Outcome:
+    """A filed-to-be result: infeasible (reason) or rolled out (trajectory and verdict)."""
+
+    proposed: _Proposed | _Running
+    infeasible: str | None = None
+    x: np.ndarray | None = None
+    v: np.ndarray | None = None
+    failure: tuple[str, int] | None = None
+    detail: dict[str, Any] | None = None
+
+
+FRAMES_MARGIN = 1.5  # slot buffers hold this times the longest episode planned so far
+
+
+class SlotExpansion:
+    """One task's expansion on `cfg.batch_size` slots (module docstring). make_rollout(frames): the SlotRollout whose
+    slots hold episodes of up to `frames` frames; write(accepted, running, x, v, failure): stores a filed episode (on
+    the writer thread); wanted: accepted generated episodes to reach; started: time.perf_counter() of the stage."""
+
+    def __init__(self, task: Task, scene: Scene, sources: list[SourceEpisode], cfg: ExpandConfig,
+                 validate_cfg: ValidateConfig, dt: float, wanted: int, make_rollout: Callable[[int], SlotRollout],
+                 pool: PlanPool, started: float, write: Callable[..., None],
+                 on_filed: Callable[[SlotExpansion], None] | None = None) -> None:
+        self.task, self.scene, self.sources, self.cfg, self.validate_cfg = task, scene, sources, cfg, validate_cfg
+        self.dt, self.wanted, self.make_rollout, self.pool, self.started = dt, wanted, make_rollout, pool, started
+        self.write, self.on_filed = write, on_filed
+        self.rollout: SlotRollout | None = None
+        self.planner = CoveragePlanner()
+        self.ahead = cfg.slots.plans_ahead or 2 * cfg.batch_size
+        self.proposed = self.filed = self.accepted = self.generated = self.frames = 0
+        self.queue: deque[_Proposed] = deque()
+        self.slots: list[_Running | None] = [None] * cfg.batch_size
+        self.outcomes: dict[int, _Outcome] = {}
+        self.rejections: dict[str, int] = {name: 0 for name in PREDICATES}
+        self.rejected: list[dict[str, Any]] = []
+        self.infeasible: list[dict[str, Any]] = []
+        self.timer = PhaseTimer()
+        self.restarts = 0
+        self.io = ThreadPoolExecutor(1)
+        self._writes: list[Future[None]] = []
+
+    # -- proposals and planning --
+    def _may_propose(self) -> bool:
+        cfg = self.cfg
+        in_flight = self.proposed - self.filed
+        return (self.accepted + in_flight < self.wanted and self.proposed < cfg.max_attempts and in_flight < self.ahead
+                and not (cfg.max_minutes > 0 and time.perf_counter() - self.started > 60.0 * cfg.max_minutes))
+
+    def _propose(self) -> None:
+        with self.timer.phase("planning"):
+            while self._may_propose():
+                i = self.proposed
+                spec = self.planner.propose(self.task, episode_seed(self.cfg.seed, 0, i, SeedStream.EXPAND))
+                source = pick_parent(self.sources, spec.cell, i)
+                self.queue.append(_Proposed(i, spec, source, self.pool.submit(spec, self.sources.index(source))))
+                self.proposed += 1
+
+    def _fill(self) -> None:
+        """Free slots take planned episodes (infeasible plans become outcomes); waits for a plan only when every
+        slot is free."""
+        free = [s for s, r in enumerate(self.slots) if r is None]
+        taken: list[tuple[int, _Running]] = []
+        with self.timer.phase("planning"):
+            while free and self.queue:
+                head = self.queue[0]
+                if not head.plan.done() and (taken or any(r is not None for r in self.slots)):
+                    break
+                self.queue.popleft()
+                result = head.plan.result()
+                if result.planned is None:
+                    self.outcomes[head.index] = _Outcome(head, infeasible=result.infeasible)
+                    continue
+                taken.append((free.pop(0), _Running(head.index, head.spec, head.source, result.planned, result.poses)))
+        if not taken:
+            return
+        for s, running in taken:
+            self.slots[s] = running
+        longest = max(len(r.poses) for _, r in taken)
+        if self.rollout is None or longest > self.rollout.frames:
+            self._new_rollout(int(np.ceil(longest * FRAMES_MARGIN)))  # every running episode starts again
+            return
+        with self.timer.phase("loading"):
+            self.rollout.load([s for s, _ in taken], [r.slot_plan() for _, r in taken])
+
+    # -- verdicts and filing --
+    def _retire(self, t: np.ndarray, first: np.ndarray) -> None:
+        done = [s for s, r in enumerate(self.slots)
+                if r is not None and (t[s] >= len(r.poses) - 1 or (first[s] < NEVER).any())]
+        if not done:
+            return
+        with self.timer.phase("reading"):
+            trajectories = self.rollout.take(done, [int(t[s]) for s in done])
+        with self.timer.phase("verdicts"):
+            links = len(self.scene.link_names)
+            for s, (x, v) in zip(done, trajectories):
+                r = self.slots[s]
+                n = len(x)
+                ep = Episode(x, v, r.planned.actions[:n], r.poses[:n, :links], self.dt)
+                failure = slot_verdict(self.task, self.scene, self.validate_cfg, self.cfg.task_check, r.spec, ep,
+                                       first[s], complete=n == len(r.poses))
+                detail = failure_detail(self.scene, ep, self.validate_cfg, *failure) if failure else {}
+                self.outcomes[r.index] = _Outcome(r, x=x, v=v, failure=failure, detail=detail)
+                self.slots[s] = None
+
+    def _file(self) -> None:
+        while self.filed in self.outcomes:
+            out = self.outcomes.pop(self.filed)
+            p = out.proposed
+            self.filed += 1
+            if out.infeasible is not None:
+                self.planner.record(p.spec, UNREACHABLE)
+                self.infeasible.append({"seed": p.spec.seed, "cell": p.spec.cell, "parent": p.source.eid,
+                                        "reason": out.infeasible})
+                continue
+            self.planner.record(p.spec, *(out.failure or (None, None)))
+            self.generated += 1
+            self.frames += len(out.x)
+            if out.failure is None:
+                self.accepted += 1
+            else:
+                name, frame = out.failure
+                self.rejections[name] = self.rejections.get(name, 0) + 1
+                self.rejected.append({"seed": p.spec.seed, "cell": p.spec.cell, "parent": p.planned.parent,
+                                      "reason": name, "frame": frame, "frames": len(out.x), **out.detail})
+            self._writes.append(self.io.submit(self.write, out.failure is None, p, out.x, out.v, out.failure))
+            if self.on_filed is not None:
+                self.on_filed(self)
+
+    # -- the loop --
+    def _new_rollout(self, frames: int) -> None:
+        """Slots for episodes of up to `frames` frames; the running episodes start again from frame 0."""
+        with self.timer.phase("capture"):
+            previous = self.rollout
+            self.rollout = self.make_rollout(frames)
+            if previous is not None:
+                self.restarts += 1
+                self.rollout.grow_capacities([], previous.capacities)
+        self._capture()
+
+    def _restart(self, overflow: dict[str, int]) -> None:
+        """After a neighbour overflow: larger capacities, and the running episodes from their first frame."""
+        self.restarts += 1
+        self.rollout.grow_capacities(sorted(overflow))
+        self._capture()
+
+    def _capture(self) -> None:
+        """Every slot loaded (idle ones parked on a running episode's frame 0), the graphs captured, then the running
+        episodes loaded again from their first frame (the capture's warm-up advanced them)."""
+        busy = [s for s, r in enumerate(self.slots) if r is not None]
+        idle = [s for s, r in enumerate(self.slots) if r is None]
+        plans = [self.slots[s].slot_plan() for s in busy]
+        parked = [SlotPlan(plans[0].x0, plans[0].poses[:1])] * len(idle)
+        with self.timer.phase("capture"):
+            self.rollout.load(busy + idle, plans + parked)
+            self.rollout.capture()
+            self.rollout.load(busy + idle, plans + parked)
+
+    def _keep_busy(self) -> None:
+        """File, propose and fill until a slot runs or nothing more can be proposed or planned."""
+        while True:
+            self._file()
+            self._propose()
+            self._fill()
+            if any(r is not None for r in self.slots) or not (self.queue or self._may_propose()):
+                return
+
+    def run(self) -> None:
+        """Until the target is reached, the attempts run out or the deadline passes; every write done."""
+        try:
+            self._keep_busy()
+            while any(r is not None for r in self.slots):
+                self.rollout.advance(self.cfg.slots.sync_every)
+                self._file()  # host work while the device runs
+                self._propose()
+                with self.timer.phase("device_wait"):
+                    t, first_frames, overflow = self.rollout.read_failures()
+                if overflow:
+                    self._restart(overflow)
+                    continue
+                self._retire(t, first_frames)
+                self._keep_busy()
+            self._file()
+        finally:
+            with self.timer.phase("io_wait"):
+                self.io.shutdown(wait=True)
+            for w in self._writes:
+                w.result()
+
+    @property
+    def attempts(self) -> int:
+        return self.proposed
+
+    @property
+    def counters(self) -> dict[str, dict[str, float]]:
+        """The fixed projection's counters (one sync)."""
+        return {"projection": self.rollout.fixed.read_stats()} if self.rollout is not None else {}
+
+    @property
+    def rollout_s(self) -> float:
+        """Device time of the frames (the parts' sum)."""
+        return sum(self.rollout.part_s.values()) if self.rollout is not None else 0.0
+
+    def timing(self) -> dict[str, float]:
+        """Seconds per host phase and per device part of a frame."""
+        return {**{f"host_{k}_s": v for k, v in self.timer.seconds.items()},
+                **{f"device_{k}_s": v for k, v in self.rollout.part_s.items()}}
