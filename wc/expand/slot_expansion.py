@@ -98,6 +98,7 @@ class SlotExpansion:
         self.infeasible: list[dict[str, Any]] = []
         self.timer = PhaseTimer()
         self.restarts = 0
+        self.loads = 0  # planned episodes loaded into a slot (restarts not counted)
         self.io = ThreadPoolExecutor(1)
         self._writes: list[Future[None]] = []
 
@@ -135,6 +136,7 @@ class SlotExpansion:
                 taken.append((free.pop(0), _Running(head.index, head.spec, head.source, result.planned, result.poses)))
         if not taken:
             return
+        self.loads += len(taken)
         for s, running in taken:
             self.slots[s] = running
         longest = max(len(r.poses) for _, r in taken)

@@ -1,0 +1,177 @@
+"""The expand stage's slot engine (wc/expand/slot_*.py, fixed_projection.py, frame_checks.py) on the CPU, at small
+size: slots refill as episodes end or fail, the verdicts of the reference engine on the same plans, the projection's
+invariants, and its static-shape helpers."""
+
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import torch
+
+from tests.conftest import load_params
+from tests.expand_inputs import expand_params, write_source_store, write_tiny_model
+from wc.config import load_section
+from wc.data.store import TrajectoryStore
+from wc.expand import expand
+from wc.expand.body_contacts import DeviceBodies, horn_rotation, push_out
+from wc.expand.cloth_elements import compact
+from wc.expand.fixed_projection import FixedProjectionConfig, FixedStepProjection
+from wc.expand.frame_checks import FRAME_CHECKS, FrameChecks
+from wc.scene.config import SceneConfig
+from wc.scene.scene import build_scene
+from wc.validate.config import ValidateConfig
+from wc.validate.predicates import Episode, penetration, rigid_frames, self_intersection, table_and_robot_distance
+from wc.validate.self_intersection import crossing_edges, unique_edges
+
+CONFIG = FixedProjectionConfig((0.9, 1.1), 10, 20, 0.002, 1, 0.8, 2, 10, 6, 4, 16, 16, 4096)
+
+
+@pytest.fixture(scope="module")
+def inputs(tmp_path_factory) -> tuple[dict[str, Any], Path, Path]:
+    params = expand_params()
+    d = tmp_path_factory.mktemp("slots")
+    return params, write_source_store(d, params), write_tiny_model(d, params)
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return build_scene(load_section(load_params(), "scene", SceneConfig))
+
+
+def _run(inputs, tmp: Path, name: str, **expand_keys: Any) -> tuple[dict[str, Any], TrajectoryStore, TrajectoryStore]:
+    params, store, model = inputs
+    p = copy.deepcopy(params)
+    validate = expand_keys.pop("validate", {})
+    p["validate"].update(validate)
+    p["expand"].update(expand_keys)
+    r = expand(p, model, store, tmp / f"{name}.zarr", tmp / f"{name}.json", tmp / f"{name}_rejected.zarr")
+    return r, TrajectoryStore(tmp / f"{name}.zarr"), TrajectoryStore(tmp / f"{name}_rejected.zarr")
+
+
+@pytest.mark.slow
+def test_two_slots_take_every_episode_in_turn_and_file_them_in_order(inputs, tmp_path):
+    r, out, rejected = _run(inputs, tmp_path, "refill", engine="slots", batch_size=2, target_trajectories=7,
+                            max_attempts=5, seed=5)
+    assert r["engine"] == "slots" and r["slots"] == 2 and r["restarts"] == 0
+    assert r["generated"] + r["infeasible_plans"] == 5 and r["generated"] >= 3  # more episodes than slots
+    assert r["slot_loads"] == r["generated"]  # each generated episode took a slot once, in the one set of slots
+    seeds = [out.episode_attrs(e)["seed"] for e in out.episode_ids]
+    assert len(seeds) == r["accepted"]
+    assert {"host_planning_s", "host_device_wait_s", "device_network_s", "device_projection_s",
+            "device_untangle_s", "device_checks_s"} <= set(r["timing"])
+    again, out2, _ = _run(inputs, tmp_path, "again", engine="slots", batch_size=2, target_trajectories=7,
+                          max_attempts=5, seed=5)
+    assert [out2.episode_attrs(e)["seed"] for e in out2.episode_ids] == seeds  # same seed, same episodes
+    for e in out.episode_ids:
+        assert np.array_equal(out.read_episode(e, ("x",))["x"], out2.read_episode(e, ("x",))["x"])
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("check, failing", [("workspace", {"workspace_min_m": [-10.0, -10.0, 5.0]}),
+                                            ("blow_up", {"max_speed_m_s": 1e-4})])
+def test_both_engines_reject_the_same_plans_for_the_same_check(inputs, tmp_path, check, failing):
+    verdicts = {}
+    for engine in ("slots", "batches"):
+        r, _, rejected = _run(inputs, tmp_path, engine, engine=engine, batch_size=2, target_trajectories=4,
+                              max_attempts=2, seed=2, validate={**failing, "self_intersection_every": 1})
+        verdicts[engine] = sorted((e["seed"], e["reason"]) for e in r["rejected_episodes"])
+        assert r["accepted"] == 0 and r["rejections"][check] == r["generated"] > 0
+        if engine == "slots":  # an episode stops at its first failing frame: its slot takes the next plan
+            for eid, logged in zip(rejected.episode_ids, r["rejected_episodes"]):
+                frames = len(rejected.read_episode(eid, ("x",))["x"])
+                assert logged["frame"] < frames <= logged["frame"] + r["sync_every"] + 1
+    assert verdicts["slots"] == verdicts["batches"]
+
+
+def _perturbed(scene, batch: int, noise_m: float, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    rest = np.concatenate([m.vertices for m in scene.objects.values()]).astype(np.float32)
+    rng = np.random.default_rng(seed)
+    x_prev = np.repeat(rest[None] + [0.0, 0.0, 0.001], batch, axis=0).astype(np.float32)
+    x = x_prev + rng.normal(0.0, noise_m, x_prev.shape).astype(np.float32)
+    x[..., 2] -= 0.003  # partly into the table
+    links = scene.link_poses(np.repeat(scene.home_action()[None], batch, axis=0))
+    return torch.tensor(x_prev), torch.tensor(x), torch.tensor(links)
+
+
+def test_the_joint_projection_keeps_edges_and_contacts_and_the_untangling_leaves_no_crossing(scene):
+    x_prev, x, links = _perturbed(scene, 3, 0.004)
+    v = (x - x_prev) / 0.04
+    fixed = FixedStepProjection(scene, CONFIG, torch.device("cpu"))
+    fixed.prepare(x_prev)
+    joint_x, joint_v = fixed.joint(x_prev, x, v, links, 0.04)
+    assert float(fixed.strain(joint_x).max()) <= 0.1 + 1e-3 < float(fixed.strain(x).max())
+    assert float(fixed.bodies.depth(joint_x, fixed.bodies.pose(links, joint_x)).max()) < 1e-4
+    assert float(fixed.bodies.depth(x, fixed.bodies.pose(links, x)).max()) > 1e-3
+    out, out_v, crossing = fixed.untangle(x_prev, joint_x, joint_v, 0.04)
+    faces, edges = scene.objects["bag"].faces, unique_edges(scene.objects["bag"].faces)
+    assert not crossing.any()
+    for b in range(3):
+        assert (crossing_edges(out[b].numpy(), faces, edges) == -1).all()
+    moved = (out - joint_x).norm(dim=-1) > 0  # the untangling only takes motion back
+    assert (out_v.norm(dim=-1)[moved] <= joint_v.norm(dim=-1)[moved] + (out - joint_x).norm(dim=-1)[moved] / 0.04
+            + 1e-4).all()
+    untouched = (x - joint_x).norm(dim=-1) == 0
+    assert torch.equal(joint_v[untouched], v[untouched])  # no velocity where nothing was corrected
+
+
+def test_frame_checks_are_the_validate_predicates(scene):
+    cfg = load_section(load_params(), "validate", ValidateConfig)
+    x_prev, x, links = _perturbed(scene, 2, 0.0)
+    x = x.clone()
+    x[1, :, 2] -= 0.02  # episode 1: 2 cm into the table
+    bag = scene.objects["bag"]
+    p = bag.vertices
+    body = int(np.argsort(np.abs(p[:, 0]) + np.abs(p[:, 2] - 0.06) + 10 * (p[:, 1] - p[:, 1].min()))[0])
+    x[0, body] += torch.tensor([0.0031, float(p[:, 1].max() - p[:, 1].min()) + 0.02, 0.0017])  # episode 0: a vertex
+    # through the back panel (off the grid lines: a crossing, not a touch)
+    fixed = FixedStepProjection(scene, CONFIG, torch.device("cpu"))
+    fixed.prepare(x)
+    _, crossing = fixed.rollback.crossings(fixed.bvh, x)
+    bad = FrameChecks(scene, cfg, DeviceBodies(scene, torch.device("cpu")), torch.device("cpu"))(
+        x, torch.zeros_like(x), links, crossing)
+    for b in range(2):
+        ep = Episode(x[b:b + 1].numpy(), np.zeros_like(x[b:b + 1].numpy()), np.zeros((1, 14)), links[b:b + 1].numpy(),
+                     0.04)
+        assert bool(bad[b, FRAME_CHECKS.index("penetration")]) == (penetration(scene, ep, cfg) is not None)
+        assert bool(bad[b, FRAME_CHECKS.index("self_intersection")]) == (self_intersection(scene, ep, cfg) is not None)
+    assert bad[:, FRAME_CHECKS.index("self_intersection")].tolist() == [True, False]
+    assert bad[:, FRAME_CHECKS.index("penetration")].tolist() == [False, True]
+
+
+def test_push_out_puts_every_vertex_on_the_surface_of_the_union(scene):
+    _, x, links = _perturbed(scene, 2, 0.003, seed=3)
+    bodies = DeviceBodies(scene, torch.device("cpu"))
+    posed = bodies.pose(links, x)
+    moved, inside = push_out(x[:, bodies.cloth], posed)
+    depth = table_and_robot_distance(scene, moved.double().numpy().reshape(-1, 3)[None],
+                                     links[:1].numpy()).reshape(2, -1)
+    assert inside.any() and depth.min() > -1e-6
+    assert torch.equal(moved[~inside], x[:, bodies.cloth][~inside])
+
+
+def test_horn_rotation_is_the_kabsch_fit():
+    rng = np.random.default_rng(1)
+    rest = rng.normal(size=(40, 3))
+    q = rng.normal(size=(6, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    w, xyz = q[:, 3:], q[:, :3]
+    r = np.stack([np.eye(3) + 2 * w[k] * np.cross(np.eye(3), xyz[k]) + 2 * np.cross(xyz[k], np.cross(xyz[k], np.eye(3)))
+                  for k in range(6)]).transpose(0, 2, 1)  # rotations (rows: images of the axes)
+    x = np.einsum("bij,nj->bni", r, rest) + rng.normal(size=(6, 1, 3)) + rng.normal(0, 0.01, (6, 40, 3))
+    pos, rot = rigid_frames(rest, x)
+    p2, r2 = horn_rotation(torch.tensor(rest), torch.tensor(x))
+    assert np.allclose(rot, r2.numpy(), atol=1e-9) and np.allclose(pos, p2.numpy(), atol=1e-9)
+
+
+def test_compaction_without_a_sync_keeps_the_true_entries_in_order():
+    valid = torch.tensor([[False, True, True], [False, False, True]])
+    exact, mask, lost = compact(valid, None)
+    assert exact.tolist() == [1, 2, 5] and mask.all() and int(lost) == 0
+    static, mask, lost = compact(valid, 4)
+    assert static[mask].tolist() == [1, 2, 5] and mask.tolist() == [True, True, True, False] and int(lost) == 0
+    static, mask, lost = compact(valid, 2)
+    assert static.tolist() == [1, 2] and mask.all() and int(lost) == 1
