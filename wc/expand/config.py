@@ -24,13 +24,15 @@ class SlotConfig:
     final_edge_passes: int = 20  # edge-only passes after them
     bounded_rounds: int = 2  # bounded step: distance measurements and tries at the rest of the step
     bounded_passes: int = 10  # bounded step: Jacobi passes per round
-    rollback_rounds: int = 6  # rollback rounds (a shorter step for a ring wider each round)
+    rollback_rounds: int = 12  # rollback rounds (a shorter step for a ring wider each round)
     vertex_pairs: int = 16  # candidate triangles kept per cloth vertex (self-contact, bounded step)
     edge_pairs: int = 16  # candidate edges kept per cloth edge (bounded step)
-    pair_capacity: int = 4096  # near pairs per episode the passes handle on CUDA (overflow is counted)
+    pair_capacity: int = 96  # bounded step: near element pairs per episode its passes handle on CUDA (overflow counted)
+    self_contact_capacity: int = 64  # self-contact: vertex-triangle pairs per episode handled on CUDA (overflow counted)
 
     def validate(self) -> None:
-        for name in ("sync_every", "iterations", "bounded_passes", "vertex_pairs", "edge_pairs", "pair_capacity"):
+        for name in ("sync_every", "iterations", "bounded_passes", "vertex_pairs", "edge_pairs", "pair_capacity",
+                     "self_contact_capacity"):
             if getattr(self, name) < 1:
                 raise ValueError(f"slots.{name} must be >= 1, got {getattr(self, name)}")
         for name in ("plans_ahead", "planner_workers", "final_edge_passes", "bounded_rounds", "rollback_rounds"):

@@ -53,7 +53,8 @@ class FixedProjectionConfig:
     rollback_full_from: int
     vertex_pairs: int  # candidate triangles per cloth vertex (self-contact, bounded step)
     edge_pairs: int  # candidate edges per cloth edge (bounded step)
-    pair_capacity: int  # near pairs per episode kept for the passes on CUDA (the CPU keeps exactly the near ones)
+    pair_capacity: int  # bounded step: near pairs per episode kept for the passes on CUDA (the CPU keeps exactly those)
+    self_contact_capacity: int = 256  # self-contact pairs per episode kept on CUDA
     self_contact_margin_m: float = 0.002
 
 
@@ -184,7 +185,7 @@ class FixedStepProjection:
         self.bvh.vertex_face_pairs(x, reach, torch.zeros(bsz, len(el.faces), device=x.device), self.skip, slots,
                                    dropped)
         q, k = slots.shape[1:]
-        idx, valid, lost = compact(slots >= 0, None if host_checks(x) else bsz * cfg.pair_capacity)
+        idx, valid, lost = compact(slots >= 0, None if host_checks(x) else bsz * cfg.self_contact_capacity)
         self.stats["pairs_dropped"] += dropped.sum() + lost
         self.stats["self_contact_pairs"] += valid.sum()
         b, vi = idx // (q * k), (idx // k) % q

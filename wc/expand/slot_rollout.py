@@ -116,7 +116,7 @@ class SlotRollout:
         self.t.add_(active.long())
 
     def _parts(self) -> list[Callable[[], None]]:
-        return [self._network, self._projection, self._untangle, self._checks]
+        return [torch.no_grad()(part) for part in (self._network, self._projection, self._untangle, self._checks)]
 
     def capture(self) -> None:
         """Capture the four parts as CUDA graphs (CUDA with cuda_graph only) on the slots' current contents, which

@@ -43,7 +43,8 @@ def fixed_projection_config(cfg: ExpandConfig, sim: SimConfig) -> FixedProjectio
         self_contact_rings=sim.self_contact_filter_rings, untangle_share=cfg.untangle_share,
         bounded_rounds=s.bounded_rounds if "bounded" in cfg.untangle else 0, bounded_passes=s.bounded_passes,
         rollback_rounds=s.rollback_rounds if "rollback" in cfg.untangle else 0, rollback_full_from=cfg.untangle_rounds,
-        vertex_pairs=s.vertex_pairs, edge_pairs=s.edge_pairs, pair_capacity=s.pair_capacity)
+        vertex_pairs=s.vertex_pairs, edge_pairs=s.edge_pairs, pair_capacity=s.pair_capacity,
+        self_contact_capacity=s.self_contact_capacity)
 
 
 class SlotModel:
@@ -78,11 +79,12 @@ class SlotModel:
                            cuda_graph=self.cfg.slots.cuda_graph)
 
 
-def run_slots(params: dict[str, Any], model: SlotModel, task: Task, scene: Scene, sources: list[SourceEpisode],
-              wanted: int, writer: TrajectoryWriter | None, rejected_writer: TrajectoryWriter | None,
+def run_slots(model: SlotModel, pool: PlanPool, task: Task, scene: Scene, sources: list[SourceEpisode], wanted: int,
+              writer: TrajectoryWriter | None, rejected_writer: TrajectoryWriter | None,
               started: float) -> SlotExpansion:
-    """Expand on the slots until the target is met or the attempts run out; each filed episode goes to `writer`
-    (accepted) or `rejected_writer` (None: not kept). Returns the finished expansion (its counts and timing)."""
+    """Expand on the slots, planning in `pool`, until the target is met or the attempts run out; each filed episode
+    goes to `writer` (accepted) or `rejected_writer` (None: not kept). Returns the finished expansion (its counts and
+    timing)."""
     cfg, links = model.cfg, len(scene.link_names)
     bar = tqdm(total=wanted, desc=f"expand {task.name}", unit="trajectory")
 
@@ -100,11 +102,10 @@ def run_slots(params: dict[str, Any], model: SlotModel, task: Task, scene: Scene
         bar.n = expansion.accepted
         bar.set_postfix(generated=expansion.generated, rejected=expansion.generated - expansion.accepted)
 
-    with PlanPool(params, scene, sources, cfg, model.dt, model.validate_cfg, cfg.slots.planner_workers) as pool:
-        expansion = SlotExpansion(task, scene, sources, cfg, model.validate_cfg, model.dt, wanted, model.rollout,
-                                  pool, started, write, filed)
-        try:
-            expansion.run()
-        finally:
-            bar.close()
+    expansion = SlotExpansion(task, scene, sources, cfg, model.validate_cfg, model.dt, wanted, model.rollout, pool,
+                              started, write, filed)
+    try:
+        expansion.run()
+    finally:
+        bar.close()
     return expansion

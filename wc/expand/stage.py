@@ -37,6 +37,7 @@ from wc.distributed import UnitsFailed, Unit, WorkerSpec, drive, every_unit, ope
 from wc.model.predictor import CHECKPOINT
 from wc.expand.config import ExpandConfig
 from wc.expand.generated_store import copy_scene, episode_attrs
+from wc.expand.plan_pool import PlanPool
 from wc.expand.slot_expansion import SlotExpansion
 from wc.expand.slot_stage import SlotModel, run_slots
 from wc.expand.plan import PlannedEpisode, SourceEpisode, pick_parent, plan_episode, source_episodes
@@ -178,12 +179,13 @@ def expand(params: dict[str, Any], model_dir: str | Path = EXPAND["model"], stor
                                 chunk_frames=src.chunk_frames(sources[0].eid))
 
     if cfg.engine == "slots":
-        model = SlotModel(params, model_dir, scene, src, sources, cfg, validate_cfg)  # loads before any output
-        with writer_to(out) as writer, writer_to(rejected_out) as rejected_writer:
-            for w in (writer, rejected_writer):
-                if w is not None:
-                    copy_scene(src, w)
-            slots = run_slots(params, model, task, scene, sources, wanted, writer, rejected_writer, started)
+        with PlanPool(params, scene, sources, cfg, dt, validate_cfg, cfg.slots.planner_workers) as pool:  # before CUDA
+            model = SlotModel(params, model_dir, scene, src, sources, cfg, validate_cfg)  # loads before any output
+            with writer_to(out) as writer, writer_to(rejected_out) as rejected_writer:
+                for w in (writer, rejected_writer):
+                    if w is not None:
+                        copy_scene(src, w)
+                slots = run_slots(model, pool, task, scene, sources, wanted, writer, rejected_writer, started)
         result = {**_report(slots, cfg, sources, checkpoint, store, out, rejected_out, phash, {"name": "local"},
                             str(model.device), environment_info(str(model.device)), time.perf_counter() - started),
                   "engine": "slots", "slots": cfg.batch_size, "sync_every": cfg.slots.sync_every,

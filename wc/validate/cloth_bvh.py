@@ -229,7 +229,7 @@ def _edge_edge_pairs(x: wp.array(dtype=wp.vec3), edges: wp.array(dtype=wp.vec2i)
 
 
 def _wp(t: torch.Tensor, dtype=None):  # noqa: ANN001, ANN202 - a warp view of a contiguous torch tensor
-    return wp.from_torch(t.contiguous(), dtype=dtype)
+    return wp.from_torch(t.contiguous(), dtype=dtype, requires_grad=False)
 
 
 class ClothBVH:
