@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import copy
+import json
 import sys
 import time
 from pathlib import Path
@@ -126,15 +127,19 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                 f"{args.sources} accepted episodes; teacher check on {args.teacher_plans} generated plans",
     }
     records: list[EpisodeRecord] = []
-    for k, worlds in enumerate(args.worlds):
+    raw, store = work / "newton_raw.zarr", work / "newton_sources.zarr"
+    if args.reuse_newton:  # a run cut short after its Newton rows: they and the validated store are kept
+        report["newton"] = json.loads(out.read_text())["newton"]
+        report["newton_reused_from"] = str(out)
+    for k, worlds in enumerate([] if args.reuse_newton else args.worlds):
         row, recs = newton_rate(base, args.task, worlds, args.newton_seconds, args.seed + 1000 * k)
         report["newton"].append(row)
         records += recs
         print(f"newton {worlds} worlds: {row['accepted_per_min']:.1f} accepted/min ({row['acceptance']:.2f})", flush=True)
         write_json_atomic(out, report)
-    raw, store = work / "newton_raw.zarr", work / "newton_sources.zarr"
-    write_newton_store(base, args.task, records, raw)
-    validate(base, raw, store, work / "validate.json")
+    if not args.reuse_newton:
+        write_newton_store(base, args.task, records, raw)
+        validate(base, raw, store, work / "validate.json")
     params = copy.deepcopy(base)
     params["expand"].update(task=args.task, max_sources=args.sources)
     warm = copy.deepcopy(params)
@@ -180,6 +185,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--work", default="/tmp/expand_speed", help="folder for the stores the run makes")
     parser.add_argument("--out", default="reports/expand_speed.json")
+    parser.add_argument("--reuse-newton", action="store_true",
+                        help="keep the Newton rows of --out and the validated store in --work (a run cut short)")
     args = parser.parse_args(argv)
     if min(args.sources, args.target - args.sources, args.warmup, args.teacher_plans) < 1 or args.newton_seconds <= 0:
         parser.error("--sources, --warmup, --teacher-plans and --target - --sources must be >= 1, --newton-seconds > 0")

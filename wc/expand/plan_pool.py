@@ -61,17 +61,15 @@ def _plan_in_worker(spec: EpisodeSpec, source: int) -> PlanResult:
 
 
 class PlanPool:
-    """Plans specs in `workers` processes (0: here, at submit). Create it before anything in the process uses CUDA
-    (the workers are forked where the platform allows)."""
+    """Plans specs in `workers` spawned processes (0: here, at submit), one torch thread each."""
 
     def __init__(self, params: dict[str, Any], scene: Scene, sources: list[SourceEpisode], cfg: ExpandConfig,
                  dt: float, validate_cfg: ValidateConfig, workers: int) -> None:
         args = (params, scene, sources, cfg, dt, validate_cfg)
         self._local = _Planner(*args) if workers == 0 else None
-        # fork where there is one (no re-import, no pickled scene): create the pool before the stage touches CUDA
-        method = "fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn"
+        # spawned: a forked worker cannot use autograd once the parent has (the IK does), nor CUDA
         self._pool = None if workers == 0 else ProcessPoolExecutor(
-            workers, mp_context=multiprocessing.get_context(method), initializer=_init_worker, initargs=args)
+            workers, mp_context=multiprocessing.get_context("spawn"), initializer=_init_worker, initargs=args)
 
     def submit(self, spec: EpisodeSpec, source: int) -> Future[PlanResult]:
         if self._pool is not None:
