@@ -1,10 +1,9 @@
 #!/bin/bash
-# Issue 19: is the source simulator reproducible enough to be a teacher? benchmarks.newton_convergence on the GPU:
+# Is the source simulator reproducible enough to be a teacher? benchmarks.newton_convergence on the GPU:
 # the same lift_handle specs (the CPU default scene, 306-vertex bag) at several VBD iteration counts, each rolled out
 # once and re-run in another batch order and from frame-0 noise (PERTURB), against its cost per episode.
-# Run in the background (hold_lib.sh `background`) after the wheels are unpacked; progress in /tmp/run/steps.log.
+# Run in the background (hold_lib.sh `background`) once the packages are in place; progress in /tmp/run/steps.log.
 cd "$(dirname "$0")/../.."
-export OUT=/tmp/run/out
 source scripts/gpu/hold_lib.sh
 step "convergence start"
 # shellcheck disable=SC2086  # PERTURB is a list

@@ -1,15 +1,13 @@
 #!/bin/bash
-# Issue 20's three policies on one GPU (run in the background by issue20_hold.sh policies; progress in
-# /tmp/run/steps.log), from the datasets /tmp/run/lerobot/{source, expanded, newton_150} of issue20_data.sh:
+# The policy comparison's three policies on one GPU (run in the background by policy_comparison.sh policies; progress in
+# /tmp/run/steps.log), from the datasets /tmp/run/lerobot/{source, expanded, newton_150} of policy_comparison_data.sh:
 #   1. ACT (params/policy_act_gpu.yaml, identical settings and seed) on each dataset, the three trainings side by side
 #      (the video decoding bounds each; NUM_WORKERS decoder processes each)
 #   2. policy_eval: TRIALS closed-loop Newton trials per policy on the same trial seeds (the policy seed stream),
 #      in EVAL_WORKERS processes sharing the GPU
 cd "$(dirname "$0")/../.."
-export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1
-R=/tmp/run; mkdir -p $R "$OUT"
+source scripts/gpu/hold_lib.sh
 ARMS=${ARMS:-source expanded newton_150}
-step() { echo "$(date +%T) $*" >> $R/steps.log; }
 step "finetune start: $ARMS"
 for arm in $ARMS; do
   python -m stages.finetune --params params.yaml --policy params/policy_act_gpu.yaml --set "policy.datasets=[$arm]" \

@@ -1,7 +1,8 @@
-# Issue 19's GPU run, sourced by scripts/gpu/issue19_*.sh: the CPU default scene (306-vertex bag) simulated with Newton
-# on the GPU, and params/gpu.yaml's training recipe (learning rates, noise, events, per-axis scales, held-out
+# The stage overrides of the lift_handle world-model runs on one GPU (sourced by world_model.sh, contact_tasks_data.sh,
+# world_model_chunk.sh, expand_check_rollouts.sh and the runs built on them): the CPU default scene (306-vertex bag)
+# simulated with Newton on the GPU, and params/gpu.yaml's training recipe (learning rates, noise, events, per-axis scales, held-out
 # rollout selection) on the static compiled path, its schedule scaled to 14,000 base + 4,000 projection steps
-# (what one 30-minute GPU hold fits after the simulation).
+# (what 30 minutes of one GPU fit after the simulation).
 # Packed wheels (warp, newton, zarr, trimesh) on PYTHONPATH; state lives in /tmp/run. The acceptance checks run on the
 # GPU too (validate.device): on the host they cost more than the simulation (reports/check_cost_cpu.md). No
 # torch.compile by default: it recompiled for every layout of multi-task data (~250 s a step on the H100).
@@ -20,7 +21,7 @@ TRAIN_SETS=(
   --set train.per_axis_scales=true --set train.checkpoint_every_steps=1000 --set train.autocast_bf16=true
   --set train.tf32=true --set train.static=true --set train.compile=${COMPILE:-false} --set train.cuda_graph=true
   --set train.device=cuda --set "train.init_from='${INIT_FROM:-}'" ${EXTRA_TRAIN_SETS:-})
-# the expansion and teacher check on the GPU (issue19_expand.sh)
+# the expansion and teacher check on the GPU (expand_check_rollouts.sh)
 EXP_SETS=(--set expand.target_trajectories=${TARGET:-150} --set expand.max_minutes=${EXPAND_MINUTES:-3.5} --set expand.max_attempts=${ATTEMPTS_EXPAND:-600}
   --set expand.batch_size=${EXPAND_BATCH:-64} --set expand.device=cuda --set validate.device=cuda --set sim.device=cuda
   --set sim.worlds=32 --set sim.iterations=${SIM_ITERATIONS:-5} --set expand.pad_carry=${PAD_CARRY:-false} --set expand.untangle=${UNTANGLE:-bounded+rollback}

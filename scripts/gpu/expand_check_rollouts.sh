@@ -1,10 +1,10 @@
 #!/bin/bash
-# Issue 19 on the GPU, after issue19_train.sh finished the model in /tmp/run/model: the 25 -> 150 lift_handle
+# The world model's expansion checks on the GPU, with MODEL (default /tmp/run/model, world_model_chunk.sh's): the lift_handle
 # expansion (expand.pad_carry=${PAD_CARRY:-false}), the teacher check of up to TEACHER plans of each verdict, and the
 # held-out 100-frame rollouts of the model against constant velocity and zero motion (evaluate's stability curves).
 # Reports to $OUT (TAG names them).
 cd "$(dirname "$0")/../.."
-source scripts/gpu/issue19_env.sh
+source scripts/gpu/gpu_overrides.sh
 TAG=${TAG:-h100}
 MODEL=${MODEL:-/tmp/run/model}
 if [ "${SKIP_EXPAND:-0}" != 1 ]; then

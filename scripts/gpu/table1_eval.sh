@@ -1,13 +1,12 @@
 #!/bin/bash
-# Issue 22, hold 2 (run in the background by issue22_hold.sh eval; progress in /tmp/run/steps.log):
+# Table 1, second machine (run in the background by table1.sh eval; progress in /tmp/run/steps.log):
 #   1. Newton: fresh test episodes of the same six tasks (agent.seed 23: no model trained on them), TEST_PER_TASK (6) per task
 #   2. evaluate every method of params/gpu_table1.yaml on them: Table 1, stability, the speed-accuracy chart
 #   3. batched speed: benchmarks.rollout_speed on a test episode (WorldContact fp32 / bf16, B = 1, 8, 32; Newton
 #      1 and 32 worlds)
 cd "$(dirname "$0")/../.."
-export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1
-R=/tmp/run; P=${P:-params/gpu_table1.yaml}; PER_TASK=${TEST_PER_TASK:-6}  # whole test episodes per task
-step() { echo "$(date +%T) $*" >> $R/steps.log; }
+source scripts/gpu/hold_lib.sh
+P=${P:-params/gpu_table1.yaml}; PER_TASK=${TEST_PER_TASK:-6}  # whole test episodes per task
 step "simulate test start"
 python -m stages.simulate --params $P --set agent.seed=23 --set agent.episodes_per_task=$((PER_TASK + 1)) \
   --set agent.max_attempts_per_task=32 --out $R/test_raw.zarr --report $R/simulate_test.json \

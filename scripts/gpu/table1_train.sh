@@ -1,5 +1,5 @@
 #!/bin/bash
-# Issue 22, hold 1 (run in the background by issue22_hold.sh train; progress in /tmp/run/steps.log):
+# Table 1, first machine (run in the background by table1.sh train; progress in /tmp/run/steps.log):
 #   1. Newton: the six contact tasks of the shipped model's data (params/gpu_table1.yaml: fresh seeds), validated with
 #      2 val + 2 test whole episodes per task -> /tmp/run/store.zarr
 #   2. every learned method on its train split, side by side on the one GPU, under one wall-clock budget: WorldContact
@@ -7,9 +7,8 @@
 #      (train_baselines, until the budget or the convergence of their validation loss)
 # ONLY=baselines trains the three baselines alone, without the WorldContact trainings beside them; P names the params.
 cd "$(dirname "$0")/../.."
-export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1
-R=/tmp/run; P=${P:-params/gpu_table1.yaml}; mkdir -p $R/models/ablations $R/models/baselines
-step() { echo "$(date +%T) $*" >> $R/steps.log; }
+source scripts/gpu/hold_lib.sh
+P=${P:-params/gpu_table1.yaml}; mkdir -p $R/models/ablations $R/models/baselines
 step "simulate start"
 python -m stages.simulate --params $P --out $R/raw.zarr --report $R/simulate.json --memory $R/memory.json \
   > $R/simulate.log 2>&1

@@ -1,5 +1,5 @@
 #!/bin/bash
-# Issue 20's data on one GPU (run in the background by issue20_hold.sh data; progress in /tmp/run/steps.log):
+# The policy comparison's data on one GPU (run in the background by policy_comparison.sh data; progress in /tmp/run/steps.log):
 #   1. Newton: lift_handle episodes of the CPU-default scene (WORLDS worlds a batch) until NEWTON_WANTED are accepted,
 #      validated; the first 25 accepted -> source.zarr, the next 125 -> newton_extra.zarr (fresh Newton episodes)
 #   2. WorldContact: the shipped model (MODEL) expands source.zarr's 25 to 150 (125 generated, accepted)
@@ -7,10 +7,8 @@
 #      /tmp/run/lerobot/{source, expanded, newton_150} (newton_150 = source + newton_extra)
 # Steps 1 and 2 run alone on the GPU, one after the other: their wall times are the data-production times compared.
 cd "$(dirname "$0")/../.."
-export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1
-R=/tmp/run; mkdir -p $R "$OUT"
+source scripts/gpu/hold_lib.sh
 MODEL=${MODEL:-models/pretrained/worldcontact-lift-handle}
-step() { echo "$(date +%T) $*" >> $R/steps.log; }
 GPU=(--set sim.device=cuda --set validate.device=cuda)
 step "simulate start"
 python -m stages.simulate --params params.yaml "${GPU[@]}" --set sim.worlds=${WORLDS:-128} --set agent.workers=1 \
@@ -21,7 +19,8 @@ step "simulate rc=$? $(tail -c 300 $R/simulate.log | tr '\r\n' '  ')"
 python -m stages.validate --params params.yaml "${GPU[@]}" --raw $R/raw.zarr --out $R/newton.zarr \
   --report $R/validate.json > $R/validate.log 2>&1
 step "validate rc=$? $(tail -2 $R/validate.log | tr '\n' ' ')"
-python scripts/gpu/issue20_split.py $R/newton.zarr lift_handle 25 125 $R/source.zarr $R/newton_extra.zarr >> $R/steps.log 2>&1
+python -m wc.data.take $R/newton.zarr $R/source.zarr -n 25 --task lift_handle >> $R/steps.log 2>&1
+python -m wc.data.take $R/newton.zarr $R/newton_extra.zarr -n 125 --skip 25 --task lift_handle --at-most >> $R/steps.log 2>&1
 step "expand start"
 python -m stages.expand --params params.yaml "${GPU[@]}" --set expand.device=cuda --set expand.target_trajectories=150 \
   --set expand.max_attempts=${EXPAND_ATTEMPTS:-400} --set expand.batch_size=${EXPAND_BATCH:-64} \
