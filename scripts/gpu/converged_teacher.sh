@@ -1,8 +1,8 @@
 #!/bin/bash
 # The world model against a converged teacher, on one GPU. At params.yaml's 5 VBD iterations about half of Newton's own
 # lifts slip out of the pads and a re-run moves a plan 31 mm; at 20 none slip and a re-run moves it 7 mm
-# (reports/gpu/newton_convergence_h100.md). One hold: fresh lift_handle data at SIM_ITERATIONS (default 20), the
-# shipped model fine-tuned on it (the shipped recipe: window 5, batch 8, 3,000 + 1,000 steps, peak lr 3e-5), then the
+# (reports/gpu/newton_convergence_h100.md). One GPU run: fresh lift_handle data at SIM_ITERATIONS (default 20), the
+# shipped model (or START_MODEL) fine-tuned on it (the shipped recipe: window 5, batch 8, 3,000 + 1,000 steps, peak lr 3e-5), then the
 # shipped and the fine-tuned model each: one batch of generated episodes, the teacher check at the same iterations
 # with Newton re-run once in another batch order (its own ceiling on these plans), and the held-out 100-frame
 # rollouts against constant velocity. Run in the background (hold_lib.sh `background`) once the
@@ -10,7 +10,7 @@
 cd "$(dirname "$0")/../.."
 export SIM_ITERATIONS=${SIM_ITERATIONS:-20} TEACHER_PERTURB=0  # chain: Newton re-run once
 source scripts/gpu/hold_lib.sh
-SHIPPED=models/pretrained/worldcontact-lift-handle
+SHIPPED=${START_MODEL:-models/pretrained/worldcontact-lift-handle}  # the model fine-tuned and compared against
 fresh_lift_data ${EPISODES:-192} ${ATTEMPTS:-256} ${SIM_MINUTES:-4} 4 8
 cp /tmp/run/out/simulate.json $OUT/simulate_it$SIM_ITERATIONS.json; cp /tmp/run/out/validate.json $OUT/validate_it$SIM_ITERATIONS.json
 source scripts/gpu/gpu_overrides.sh

@@ -19,7 +19,7 @@ python -m stages.evaluate --params $P --store $R/test.zarr --metrics $R/metrics.
   --stability-png $R/stability.png > $R/evaluate.log 2>&1
 step "evaluate rc=$? $(tail -16 $R/evaluate.log | tr '\r' '\n' | grep -v 'it/s' | tail -14)"
 python -m benchmarks.rollout_speed --params $P --tag table1 --out-dir $R --store $R/test.zarr \
-  --checkpoint models/pretrained/worldcontact-lift-handle/model.safetensors --batches 8,32 --skins 0.002 --profile-frames 0 \
+  --checkpoint models/pretrained/worldcontact-lift-handle-stage2/model.safetensors --batches 8,32 --skins 0.002 --profile-frames 0 \
   --train-window 0 --newton-worlds 1,32 \
   --budget-s ${SPEED_BUDGET_S:-300} > $R/rollout_speed.log 2>&1
 step "rollout_speed rc=$? $(tail -c 300 $R/rollout_speed.log | tr '\r\n' '  ')"

@@ -29,11 +29,12 @@ from wc.model.padded_neighbors import NeighborCapacity
 from wc.model.rollout import rollout
 from wc.model.static_rollout import StaticRollout
 from wc.model.worldcontact import WorldContact
+from wc.model_ref import WEIGHTS, is_hub_ref, resolve_model_dir
 from wc.train.capacity import initial_capacities
 from wc.train.checkpoint import load_model
 from wc.train.config import TrainConfig
 
-CHECKPOINT = "model.safetensors"
+CHECKPOINT = WEIGHTS  # a saved model folder's weights file
 
 
 class Predictor(Protocol):
@@ -90,7 +91,7 @@ class WorldContactPredictor:
     def from_dir(cls, path: str | Path, train_cfg: TrainConfig, device: torch.device) -> WorldContactPredictor:
         """Load <path>/model.safetensors + model.json; the json's "projection" says whether P is applied, its
         "capacities" the static neighbour capacities measured in training (if it was trained on that path)."""
-        model, config = load_model(Path(path) / CHECKPOINT, device)
+        model, config = load_model(path, device)  # a model folder or hf://owner/repo[/folder] (wc/model_ref.py)
         capacities = capacities_from_dict(config["capacities"]) if config.get("capacities") else None
         return cls(model, bool(config.get("projection", False)), train_cfg, capacities)
 
@@ -144,12 +145,13 @@ def load_predictor(spec: MethodSpec, train_cfg: TrainConfig, device: torch.devic
         return ZeroMotion()
     if spec.kind == "constant_velocity":
         return ConstantVelocity()
-    if not Path(spec.path).is_dir():
+    if not is_hub_ref(spec.path) and not Path(spec.path).is_dir():
         raise FileNotFoundError(f"checkpoint directory {spec.path} not found")
+    path = resolve_model_dir(spec.path, "evaluate.methods path")  # hf://owner/repo[/folder]: downloaded
     if spec.kind == "worldcontact":
         overrides = {key: getattr(spec, key) for key in WORLDCONTACT_KEYS if getattr(spec, key) is not None}
         train_cfg = dataclasses.replace(train_cfg, **overrides)
-        return WorldContactPredictor.from_dir(spec.path, train_cfg, device)
+        return WorldContactPredictor.from_dir(path, train_cfg, device)
     from wc.baselines import load_baseline  # noqa: PLC0415 - written separately; optional until it lands
 
-    return load_baseline(spec.path, device)
+    return load_baseline(path, device)
