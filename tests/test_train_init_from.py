@@ -8,7 +8,7 @@ import shutil
 from pathlib import Path
 from typing import Any
 
-import huggingface_hub
+from huggingface_hub import constants as hub_constants
 import pytest
 import torch
 from safetensors.torch import load_file
@@ -69,8 +69,8 @@ def test_a_hub_file_resolves_through_the_cache(pretrained, tmp_path, monkeypatch
         shutil.copyfile(model_dir / f"model{suffix}", snapshot / "bag" / f"model{suffix}")
     (snapshot.parents[1] / "refs").mkdir()
     (snapshot.parents[1] / "refs" / "main").write_text("a" * 40)
-    monkeypatch.setattr(huggingface_hub.constants, "HF_HUB_CACHE", str(tmp_path / "hub"))
-    monkeypatch.setattr(huggingface_hub.constants, "HF_HUB_OFFLINE", True)
+    monkeypatch.setattr(hub_constants, "HF_HUB_CACHE", str(tmp_path / "hub"))
+    monkeypatch.setattr(hub_constants, "HF_HUB_OFFLINE", True)
     assert resolve_weights("hf://worldcontact/pretrained/bag/model.safetensors") == snapshot / "bag" / "model.safetensors"
     assert resolve_weights("hf://worldcontact/pretrained/bag") == snapshot / "bag" / "model.safetensors"  # a folder
     with pytest.raises(FileNotFoundError, match="not available from the hub or its cache"):
