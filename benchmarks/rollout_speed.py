@@ -1,4 +1,4 @@
-"""WorldContact rollout speed beside the Newton source simulator, in one process on one device (issue 8).
+"""WorldContact rollout speed beside the Newton source simulator, in one process on one device.
 
     python -m benchmarks.rollout_speed --params params/gpu.yaml --tag h100
         [--store PATH | --synthetic carry] [--checkpoint models/worldcontact/model.safetensors]

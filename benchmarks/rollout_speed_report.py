@@ -70,7 +70,7 @@ def markdown(report: dict[str, Any]) -> str:
         whole = p["ms_per_step_median"]["whole step"]
         for name, ms in sorted(p["ms_per_step_median"].items(), key=lambda kv: -kv[1]):
             lines.append(f"| {name} | {ms:.2f} | {100 * ms / whole:.0f} % |")
-    lines += ["", "## Issue 8 targets", "", "| target | value | met |", "|---|---|---|"]
+    lines += ["", "## Targets", "", "| target | value | met |", "|---|---|---|"]
     for name, (value, goal, higher) in report.get("targets", {}).items():
         met = "-" if value is None else ("yes" if (value >= goal if higher else value <= goal) else "NO")
         lines.append(f"| {name} {'>=' if higher else '<='} {goal} | {_fmt(value, '.3f')} | {met} |")

@@ -1,4 +1,4 @@
-"""World-model training on K processes of one host (issue 23): steps/s, samples/s and scaling efficiency per K.
+"""World-model training on K processes of one host: steps/s, samples/s and scaling efficiency per K.
 
     python -m benchmarks.train_scaling --store data/source/trajectories.zarr --tag h200x8 [--procs 1,2,4,8]
         [--samples 19200] [--batch 8] [--params params.yaml] [--set train.compile=true ...] [--out-dir reports/gpu]

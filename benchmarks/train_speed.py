@@ -1,4 +1,4 @@
-"""Training speed: the reference path against the static-shape path, in one process, on the same batches (issue 18).
+"""Training speed: the reference path against the static-shape path, in one process, on the same batches.
 
     python -m benchmarks.train_speed --params params.yaml --store data/source/trajectories.zarr --tag h100
         [--settings default:8,default:32,paper:1] [--paper-params params/gpu.yaml] [--steps 30]

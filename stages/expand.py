@@ -15,7 +15,7 @@ from wc.stage_cli import StageCommand
 COMMAND = StageCommand(
     "expand", __doc__, expand, expand_summary, EXPAND, keywords={"model": "model_dir"}, optional=("rejected_out",),
     expected=(UnitsFailed,),
-    helps={"model": "checkpoint dir (model.safetensors + .json)",
+    helps={"model": "model folder (model.safetensors + model.json) or hf://owner/repo[/folder][@revision]",
            "rejected_out": "store of the rejected generated episodes, for the teacher check ('' to not keep them)"})
 main = COMMAND.main
 

@@ -1,5 +1,6 @@
 """Stage `summary`: the headline figures of the stage reports -> reports/headline.json (the DVC metrics file) and
-reports/RESULTS.md (with the list of GPU reports).
+reports/RESULTS.md (the GPU runs' headline figures first, each read from the fields its report kind declares in
+wc/report_kinds.py; then these figures, labelled a smoke run when the policy evaluation ran too few trials).
 
     python -m stages.summary [--reports reports]
 

@@ -17,6 +17,7 @@ import pytest
 
 from stages.dataset import main
 from stages.push import main as push_main
+from wc.policy.hub import PushError
 from wc.config import ParamsError
 from wc.data.store import TrajectoryStore
 from wc.policy.comparison import FLAG
@@ -272,12 +273,20 @@ def _push(root: Path, tmp_path: Path, **env: str) -> subprocess.CompletedProcess
 def test_push_fails_clearly_offline(built: dict[str, Any], tmp_path: Path) -> None:
     root = built["out"] / "expanded"
     offline = _push(root, tmp_path, HF_HUB_OFFLINE="1", HF_TOKEN="hf_not_a_token")
-    assert offline.returncode != 0
+    assert offline.returncode == 2 and offline.stderr.startswith("push: error: ")
     assert offline.stderr.strip().splitlines() == [offline.stderr.strip()]  # one line
     assert "HF_HUB_OFFLINE" in offline.stderr
     no_token = _push(root, tmp_path, HF_HUB_OFFLINE="0")
-    assert no_token.returncode != 0 and "no Hugging Face token" in no_token.stderr
-    with pytest.raises(SystemExit, match="not a LeRobot dataset"):
-        push_main([str(tmp_path), "--repo-id", "user/name"])
-    with pytest.raises(SystemExit, match="user or org"):
+    assert no_token.returncode == 2 and "no Hugging Face token" in no_token.stderr
+    with pytest.raises(PushError, match="user or org"):
         push_main([str(root), "--repo-id", "no-owner"])
+
+
+def test_push_of_a_folder_that_is_no_dataset_exits_2_with_one_line(tmp_path: Path) -> None:
+    """An expected error ends `stages.push` as every stage's does (README: `<stage>: error: ...`, status 2)."""
+    run = _push(tmp_path, tmp_path, HF_HUB_OFFLINE="1")
+    assert run.returncode == 2, run.stderr
+    assert run.stderr.strip() == f"push: error: {tmp_path} is not a LeRobot dataset (no meta/info.json); build it " \
+                                 "with `python -m stages.dataset`"
+    with pytest.raises(PushError, match="not a LeRobot dataset"):
+        push_main([str(tmp_path), "--repo-id", "user/name"])

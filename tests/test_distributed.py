@@ -166,13 +166,11 @@ def test_a_stage_uses_the_ray_this_process_started(local_ray):
 
 
 def test_the_gpu_benchmark_asks_for_valid_params():
-    """A wrong key in scripts/gpu/issue24_bench.py would cost a GPU call."""
+    """A wrong key in benchmarks/simulate_ray.py would cost a GPU call."""
     import argparse
-    import importlib.util
 
-    spec = importlib.util.spec_from_file_location("issue24_bench", ROOT / "scripts" / "gpu" / "issue24_bench.py")
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
+    from benchmarks import simulate_ray as bench
+
     args = argparse.Namespace(params=ROOT / "params.yaml", device="cuda", worlds=8, task="lift_handle", overrides=[])
     params = bench.bench_params(args, "ray", 8)
     agent, ray = load_section(params, "agent", AgentConfig), load_section(params, "ray", RayConfig)

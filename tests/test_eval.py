@@ -19,6 +19,7 @@ from tests.conftest import load_params
 from tests.synthetic_store import write_synthetic_store
 from wc.config import ParamsError, load_section
 from wc.data.store import TrajectoryStore
+from wc.model_ref import file_sha256
 from wc.eval import (ConstantVelocity, ErrorTally, EvaluateConfig, PenetrationTally, WorldContactPredictor, ZeroMotion,
                      cloth_signed_distance, first_divergence, max_edge_strain, mesh_signed_distance,
                      penetrating_area_pct, squared_error)
@@ -282,6 +283,8 @@ def test_evaluate_stage_end_to_end(tmp_path, store_path, params):
     assert r["held_out"]["source"] == "test split"
     assert r["kinds"] == {"worldcontact": "worldcontact", "zero_motion": "zero_motion",
                           "constant_velocity": "constant_velocity"}
+    weights = models / "worldcontact" / "model.safetensors"  # the report names the weights by their hash
+    assert set(r["models"]) == {"worldcontact"} and r["models"]["worldcontact"]["sha256"] == file_sha256(weights)
     assert r["dt"] == pytest.approx(TrajectoryStore(store_path).dt)
     assert r["held_out"]["rollouts"] == 3  # the fall, and the hand-off's two phases
     # zero motion, by hand: pooled over every vertex-frame of the three rollouts

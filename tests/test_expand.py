@@ -26,6 +26,7 @@ from wc.expand import (ExpandConfig, NoSourceEpisodesError, SourceEpisode, check
                        expand, pick_parent, plan_episode, planar_transform, presettle_state)
 from wc.model.learned_dynamics import finite_rollout
 from wc.model.projection import edges_from_faces
+from wc.model_ref import file_sha256
 from wc.scene.config import SceneConfig
 from wc.scene.scene import build_scene
 from wc.tasks.base import EpisodeSpec, InfeasibleEpisode, get_task
@@ -108,7 +109,7 @@ def test_a_diverged_member_does_not_cut_the_batch_short():
 
 
 @pytest.mark.slow
-def test_stage_writes_checked_worldcontact_episodes(run, store_path, params):
+def test_stage_writes_checked_worldcontact_episodes(run, store_path, params, model_dir):
     out, r = run
     assert json.loads((out / "expand.json").read_text()) == json.loads(json.dumps(r))
     assert r["source_episodes"] == 2 and r["wanted_generated"] == 2
@@ -117,6 +118,8 @@ def test_stage_writes_checked_worldcontact_episodes(run, store_path, params):
     assert set(PREDICATES) <= set(r["rejections"]) and r["trajectories_per_min"] > 0 and r["device"] == "cpu"
     assert r["projection"] == "joint" and r["projection_stats"]["steps"] > 0  # the params default
     assert [s["presettle_state"] for s in r["sources"]] == [False, False]  # synthetic: not the agent's frame 0
+    weights = file_sha256(Path(model_dir) / "model.safetensors")
+    assert r["model"]["path"] == str(model_dir) and r["model"]["sha256"] == weights
     src, dst = TrajectoryStore(store_path), TrajectoryStore(out / "expanded.zarr")
     assert dst.attrs["created_by"] == "stages.expand" and dst.object_names == src.object_names
     assert set(dst.prescribed) == set(src.prescribed)
@@ -127,7 +130,7 @@ def test_stage_writes_checked_worldcontact_episodes(run, store_path, params):
         a = dst.episode_attrs(eid)
         assert (a["source"], a["task"], a["split"], a["accepted"], a["first_failure"]) == \
             ("worldcontact", TASK, "train", True, None)
-        assert a["parent"] in ("ep_000000", "ep_000002") and a["objects"] == ["bag"]
+        assert a["parent"] in ("ep_000000", "ep_000002") and a["objects"] == ["bag"] and a["model_sha256"] == weights
         e = dst.read_episode(eid)
         parent = src.read_window(a["parent"], 0, 1, ("x",))["x"][0]
         assert _edge_lengths(e["x"][0], faces) == pytest.approx(_edge_lengths(parent, faces), abs=1e-6)  # rigid

@@ -1,6 +1,6 @@
-"""The GPU scripts' parameter overrides are valid against params.yaml (a wrong key costs a GPU call, as
-`validate.device` once did): each group of `--set` arguments in scripts/gpu/issue19_env.sh is read and its sections
-built, with the scripts' defaults."""
+"""The GPU scripts' parameter overrides are valid against params.yaml (a wrong key costs a GPU run, as
+`validate.device` once did): each group of `--set` arguments in scripts/gpu/gpu_overrides.sh is read and its sections
+built, with the scripts' defaults; every script, module and params file a GPU script names exists."""
 
 from __future__ import annotations
 
@@ -23,7 +23,7 @@ GROUPS = {"SIM_SETS": [("sim", SimConfig), ("agent", AgentConfig), ("validate", 
 
 
 def _overrides(group: str) -> list[str]:
-    words = subprocess.run(["bash", "-c", f'source scripts/gpu/issue19_env.sh >/dev/null; printf "%s\\n" "${{{group}[@]}}"'],
+    words = subprocess.run(["bash", "-c", f'source scripts/gpu/gpu_overrides.sh >/dev/null; printf "%s\\n" "${{{group}[@]}}"'],
                            cwd=ROOT, capture_output=True, text=True, check=True).stdout.splitlines()
     assert words and words[0] == "--set", (group, words[:3])
     pairs = [words[i + 1] for i, w in enumerate(words) if w == "--set"]
@@ -32,7 +32,7 @@ def _overrides(group: str) -> list[str]:
 
 
 @pytest.mark.parametrize("group", sorted(GROUPS))
-def test_issue19_overrides_are_valid_params(group):
+def test_gpu_overrides_are_valid_params(group):
     params = read_params(ROOT / "params.yaml", _overrides(group))
     for section, cls in GROUPS[group]:
         load_section(params, section, cls)
@@ -41,7 +41,7 @@ def test_issue19_overrides_are_valid_params(group):
         assert train.device == "cuda" and train.select_by == "rollout" and train.input_noise_m > 0
 
 
-def test_table1_params_are_valid_and_name_what_the_hold_script_unpacks():
+def test_table1_params_are_valid_and_name_what_the_table1_script_unpacks():
     from wc.baselines.config import BaselinesConfig  # noqa: PLC0415
     from wc.eval.config import EvaluateConfig  # noqa: PLC0415
 
@@ -49,7 +49,7 @@ def test_table1_params_are_valid_and_name_what_the_hold_script_unpacks():
     for section, cls in [("sim", SimConfig), ("agent", AgentConfig), ("validate", ValidateConfig),
                          ("train", TrainConfig), ("baselines", BaselinesConfig), ("evaluate", EvaluateConfig)]:
         load_section(params, section, cls)
-    hold = (ROOT / "scripts" / "gpu" / "issue22_hold.sh").read_text()
+    hold = (ROOT / "scripts" / "gpu" / "table1.sh").read_text()
     methods = params["evaluate"]["methods"]
     for name in params["ablations"]:  # every ablation trained is evaluated where `eval` puts it
         assert methods[name]["path"] == f"models/table1/ablations/{name}" and "no_*) dir=models/table1/ablations" in hold
@@ -78,3 +78,21 @@ def test_the_extra_overrides_the_gpu_scripts_pass_name_existing_params():
                     node = node[part]
                 found += 1
     assert found >= 5
+
+
+def test_what_the_gpu_scripts_name_exists():
+    """Every `scripts/gpu/X` a GPU script runs or sources, every `python -m M` module and every `params/F.yaml` it
+    passes exists (a renamed script or module fails on the GPU machine, after the data were simulated)."""
+    import importlib.util  # noqa: PLC0415
+    import re  # noqa: PLC0415
+
+    named = 0
+    for script in sorted((ROOT / "scripts" / "gpu").glob("*.sh")):
+        text = "\n".join(line.split("#", 1)[0] for line in script.read_text().splitlines())  # commands, not comments
+        for path in re.findall(r"(scripts/gpu/[\w./-]+|params/[\w.]+\.yaml)", text):
+            assert (ROOT / path).exists(), f"{script.name}: {path} does not exist"
+            named += 1
+        for module in re.findall(r"python3? -m ([\w.]+)", text):
+            assert importlib.util.find_spec(module) is not None, f"{script.name}: no module {module}"
+            named += 1
+    assert named >= 30

@@ -17,6 +17,7 @@ import yaml
 
 from tests.conftest import load_params
 from wc.config import ParamsError, load_section
+from wc.model_ref import file_sha256
 from wc.policy.comparison import FLAG, flagged_title
 from wc.policy.dataset import RIGHT_ARM, create_dataset
 from wc.policy.dataset_config import DatasetConfig
@@ -181,6 +182,8 @@ def test_stage_end_to_end_in_worker_processes(tmp_path: Path) -> None:
         assert first["steps"] <= 2 and first["success"] is False and Path(first["video"]).is_file()
         assert first["failure"] in ("not_lifted", "non_finite") and "video" not in policy["outcomes"][1]
         assert saved["successes"][name] == 0 and policy["ci95"] == pytest.approx(list(wilson_interval(0, 2)))
+        weights = tmp_path / "models" / name / "model.safetensors"  # each policy's weights named by their hash
+        assert policy["model"] == str(tmp_path / "models" / name) and policy["model_sha256"] == file_sha256(weights)
     videos = sorted(p.name for p in paths["videos_dir"].iterdir())
     assert videos == [f"expanded_trial00_seed{ORACLE_SEED}.mp4", f"source_trial00_seed{ORACLE_SEED}.mp4"]
     assert paths["table"].read_text().splitlines()[0] == "policy,successes,trials,success_rate,ci95_low,ci95_high"

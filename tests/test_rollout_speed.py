@@ -50,7 +50,7 @@ def test_rollout_speed_runs_and_reports(tmp_path, store) -> None:
     assert ratios["single_s_per_s"] == 0.05 and ratios["multi_aggregate_s_per_s"] == 0.08
     assert "not this process" in ratios["source"]
     md = (tmp_path / "rollout_speed_t.md").read_text()
-    assert "Issue 8 targets" in md and "fp32 + neighbour reuse, skin 2 mm" in md
+    assert "## Targets" in md and "fp32 + neighbour reuse, skin 2 mm" in md
 
 
 def test_rollout_speed_budget_skips_rows(tmp_path, store) -> None:

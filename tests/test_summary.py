@@ -18,8 +18,8 @@ def _reports(tmp_path):
     (reports / "expand.json").write_text(json.dumps({"generated": 40, "accepted": 31, "trajectories_per_min": 12.5}))
     (reports / "metrics.json").write_text(json.dumps({"methods": {"worldcontact": {"position_mse_m2": 2e-4},
                                                                   "constant_velocity": {"position_mse_m2": 6e-4}}}))
-    (reports / "gpu" / "run_h100.json").write_text(json.dumps({"what": "a GPU run\n of something", "x": 1}))
-    (reports / "gpu" / "other_h100.json").write_text(json.dumps({"device": "cuda", "accepted": 7, "rate": 0.25}))
+    (reports / "gpu" / "validate_h100_run.json").write_text(json.dumps({"episodes": 9, "accepted": 7, "wall_s": 3.0}))
+    (reports / "policy.json").write_text(json.dumps({"trials": 1, "success_rate": {"source": 0.0, "expanded": 1.0}}))
     return reports
 
 
@@ -37,8 +37,9 @@ def test_summary_writes_the_metric_and_the_results_page(tmp_path, capsys):
           "--results", str(reports / "RESULTS.md")])
     assert json.loads((reports / "headline.json").read_text())["expand.trajectories_per_min"] == 12.5
     page = (reports / "RESULTS.md").read_text()
-    assert "| generated episodes accepted | 31 |" in page and "| `run_h100.json` | a GPU run of something |" in page
-    assert "| `other_h100.json` | accepted 7, rate 0.25 |" in page
+    assert "| generated episodes accepted | 31 |" in page and "| policy success, expanded data | 1 |" in page
+    assert "| `validate_h100_run.json` | validate | 7 of 9 episodes accepted |" in page
+    assert "**A smoke run**" in page and "ran 1 closed-loop trial(s) per policy" in page
     assert "missing: " in capsys.readouterr().out
 
 

@@ -18,8 +18,9 @@ from wc.validate import ValidateConfig
 TASK = "bag_drop"  # one second: the shortest Newton episode
 
 
-def _write(path: Path, world, scene_cfg, sim_cfg, episodes, failure: str | None = None) -> None:
-    """A generated-looking store of (spec, x, v, actions, verdict); `failure` overrides the stored verdict."""
+def _write(path: Path, world, scene_cfg, sim_cfg, episodes, failure: str | None = None, **model: str) -> None:
+    """A generated-looking store of (spec, x, v, actions, verdict); `failure` overrides the stored verdict; `model`:
+    model_sha256=... as expand records it."""
     with simulator_store(path, scene_cfg, sim_cfg, [world.task], "test", "test") as (writer, scene):
         for spec, x, v, actions, verdict in episodes:
             reason = failure or (verdict and verdict[0])
@@ -27,7 +28,7 @@ def _write(path: Path, world, scene_cfg, sim_cfg, episodes, failure: str | None 
                                np.repeat(scene.env_poses()[None], len(x), axis=0), task=TASK, seed=spec.seed,
                                cell=spec.cell, speed=spec.speed, amplitude=spec.amplitude, split="train",
                                accepted=reason is None, first_failure=reason, source="worldcontact",
-                               **layout_attrs(world, None))
+                               **model, **layout_attrs(world, None))
 
 
 @pytest.mark.slow
@@ -49,11 +50,12 @@ def test_newton_episodes_replay_to_themselves_batched_over_worlds(tmp_path):
         x, v = x[:len(actions)], v[:len(actions)]
         verdict = judge(world, spec, x, v, actions, world.scene.link_poses(actions), validate_cfg, sim_cfg.frame_dt_s)
         episodes.append((spec, x, v, actions, verdict))
-    _write(tmp_path / "gen.zarr", world, scene_cfg, sim_cfg, episodes[:1])
+    _write(tmp_path / "gen.zarr", world, scene_cfg, sim_cfg, episodes[:1], model_sha256="ab12")
     _write(tmp_path / "rej.zarr", world, scene_cfg, sim_cfg, episodes[1:], failure="blow_up")
     report = teacher_check(params, tmp_path / "gen.zarr", rejected_path=tmp_path / "rej.zarr",
                            newton_perturb_m=[0.0, 0.003])
     assert report["plans"] == 2 and report["worlds"] == 2
+    assert report["model_sha256"] == ["ab12", "not recorded"]  # the weights that generated the plans
     for plan, (_, x, _, _, verdict) in zip(report["episodes"], episodes):
         assert plan["newton"] == ("accepted" if verdict is None else verdict[0])
         assert len(plan["rms_error_m"]) == len(x) and plan["rms_error_m"][0] == 0.0
@@ -84,6 +86,7 @@ def test_missing_store_is_named_and_an_empty_one_reported(tmp_path):
         pass
     report = teacher_check(params, tmp_path / "empty.zarr")
     assert report["plans"] == 0 and report["precision"] is None and "no generated" in report["note"]
+    assert report["model_sha256"] == []
 
 
 def test_a_plan_reads_its_reference_trajectory_only_when_judged(tmp_path):

@@ -196,7 +196,7 @@ def test_per_axis_data_scales_agree_with_the_single_scale(store_path):
 
 
 def test_corrupt_or_missing_checkpoint(tmp_path):
-    with pytest.raises(FileNotFoundError, match="checkpoint file missing"):
+    with pytest.raises(FileNotFoundError, match="checkpoint not found"):
         load_model(tmp_path / "none.safetensors")
     (tmp_path / "bad.safetensors").write_bytes(b"not a tensor file")
     (tmp_path / "bad.json").write_text("{}")

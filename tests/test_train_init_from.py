@@ -8,7 +8,7 @@ import shutil
 from pathlib import Path
 from typing import Any
 
-import huggingface_hub
+from huggingface_hub import constants as hub_constants
 import pytest
 import torch
 from safetensors.torch import load_file
@@ -16,7 +16,7 @@ from safetensors.torch import load_file
 from wc.train.train_stage import run
 from tests.conftest import default_params
 from tests.synthetic_store import write_synthetic_store
-from wc.train.warm_start import resolve_checkpoint
+from wc.model_ref import resolve_weights
 
 # every test uses `pretrained`, a stage run from scratch
 pytestmark = pytest.mark.slow
@@ -69,13 +69,14 @@ def test_a_hub_file_resolves_through_the_cache(pretrained, tmp_path, monkeypatch
         shutil.copyfile(model_dir / f"model{suffix}", snapshot / "bag" / f"model{suffix}")
     (snapshot.parents[1] / "refs").mkdir()
     (snapshot.parents[1] / "refs" / "main").write_text("a" * 40)
-    monkeypatch.setattr(huggingface_hub.constants, "HF_HUB_CACHE", str(tmp_path / "hub"))
-    monkeypatch.setattr(huggingface_hub.constants, "HF_HUB_OFFLINE", True)
-    assert resolve_checkpoint("hf://worldcontact/pretrained/bag/model.safetensors") == snapshot / "bag" / "model.safetensors"
+    monkeypatch.setattr(hub_constants, "HF_HUB_CACHE", str(tmp_path / "hub"))
+    monkeypatch.setattr(hub_constants, "HF_HUB_OFFLINE", True)
+    assert resolve_weights("hf://worldcontact/pretrained/bag/model.safetensors") == snapshot / "bag" / "model.safetensors"
+    assert resolve_weights("hf://worldcontact/pretrained/bag") == snapshot / "bag" / "model.safetensors"  # a folder
     with pytest.raises(FileNotFoundError, match="not available from the hub or its cache"):
-        resolve_checkpoint("hf://worldcontact/pretrained/other/model.safetensors")
-    with pytest.raises(ValueError, match="a hub file is hf://owner/repo/path"):
-        resolve_checkpoint("hf://worldcontact/model.safetensors")
+        resolve_weights("hf://worldcontact/pretrained/other/model.safetensors")
+    with pytest.raises(ValueError, match="a hub model is hf://owner/repo"):
+        resolve_weights("hf://worldcontact/model.safetensors")
 
 
 def test_a_missing_or_mismatched_checkpoint_fails_naming_it(pretrained, tmp_path):

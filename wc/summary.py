@@ -1,6 +1,6 @@
 """The pipeline's headline figures, read from the stage reports: `reports/headline.json` (the one DVC metrics file, so
-`dvc metrics show` is a table a person can read) and `reports/RESULTS.md` (those figures, plus the GPU reports in
-`reports/gpu/` with what each one measured). Written from the JSON, never by hand."""
+`dvc metrics show` is a table a person can read) and `reports/RESULTS.md` (the GPU runs' headline figures first, then
+these figures, then every GPU report: `wc/results_page.py`). Written from the JSON, never by hand."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ from typing import Any
 from wc.atomic import write_atomic
 from wc.paths import SUMMARY
 from wc.reports import write_json_atomic
+from wc.results_page import gpu_headlines, read_policy_report, results_markdown
 
 
 @dataclass(frozen=True)
@@ -76,53 +77,12 @@ def headline_figures(reports: Path) -> dict[str, Any]:
     return figures
 
 
-def _fmt(value: Any) -> str:
-    if value is None:
-        return "–"
-    if isinstance(value, float):
-        return f"{value:.3g}"
-    return str(value)
-
-
-def _scalars(data: Any, most: int = 6) -> str:
-    """The first `most` top-level numbers of a report, as `key value` (for a report without a `what` field)."""
-    if not isinstance(data, dict):
-        return ""
-    pairs = [(k, v) for k, v in data.items() if isinstance(v, (int, float)) and not isinstance(v, bool)]
-    return ", ".join(f"{k} {_fmt(v)}" for k, v in pairs[:most])
-
-
-def gpu_reports(reports: Path) -> list[tuple[str, str]]:
-    """(file name, what it measured) for each JSON report in reports/gpu/: its `what` field, else its first
-    top-level numbers."""
-    rows = []
-    for path in sorted((reports / "gpu").glob("*.json")):
-        try:
-            data = json.loads(path.read_text())
-        except (json.JSONDecodeError, UnicodeDecodeError):
-            continue
-        what = data.get("what") if isinstance(data, dict) else None
-        rows.append((path.name, " ".join(str(what).split())[:220] if what else _scalars(data)))
-    return rows
-
-
-def results_markdown(figures: dict[str, Any], gpu: list[tuple[str, str]]) -> str:
-    """reports/RESULTS.md: the headline table of the last `dvc repro` and the list of GPU reports."""
-    lines = ["# Results", "", "Written by `python -m stages.summary` from the stage reports (`reports/*.json`) of the",
-             "last `dvc repro` (the small CPU default unless params say otherwise); do not edit by hand.", "",
-             "| figure | value | report |", "|---|---|---|"]
-    lines += [f"| {h.label} | {_fmt(figures.get(h.key))} | `{h.report}` `{h.path}` |" for h in HEADLINES]
-    lines += ["", "## GPU runs (`reports/gpu/`)", "", "Each JSON report holds its command, device and versions.", "",
-              "| report | what it measured |", "|---|---|"]
-    lines += [f"| `{name}` | {what} |" for name, what in gpu]
-    return "\n".join(lines) + "\n"
-
-
 def write_summary(reports: Path, headline: Path, results: Path) -> dict[str, Any]:
-    """Write headline.json and RESULTS.md (atomically); returns the figures."""
+    """Write headline.json and RESULTS.md (atomically); returns the figures. A GPU report of no declared kind, or
+    without one of its kind's headline fields, is a HeadlineError (a ValueError) and nothing is written."""
     figures = headline_figures(reports)
+    text = results_markdown(gpu_headlines(reports), figures, HEADLINES, read_policy_report(reports))
     write_json_atomic(headline, figures)
-    text = results_markdown(figures, gpu_reports(reports))
     write_atomic(results, lambda p: p.write_text(text))
     return figures
 

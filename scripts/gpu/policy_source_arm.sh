@@ -1,5 +1,5 @@
 #!/bin/bash
-# GPU issue-7 source arm (one machine, calls back to back): PHASE=A simulate 25 wanted lift_handle episodes, validate,
+# The source arm of the policy comparison on one GPU (one machine, commands back to back): PHASE=A simulate 25 wanted lift_handle episodes, validate,
 # render 224^2; PHASE=B LeRobot dataset + ACT (params/policy_act_gpu.yaml); PHASE=C 20 closed-loop trials. Needs the
 # packed warp/newton/zarr and lerobot wheels on PYTHONPATH (README: GPU machine); state lives in /tmp/run
 cd "$(dirname "$0")/../.."

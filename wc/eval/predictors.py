@@ -23,6 +23,7 @@ import torch
 from wc.eval.config import WORLDCONTACT_KEYS, MethodSpec
 from wc.model.layout import SceneLayout
 from wc.model.predictor import Predictor, WorldContactPredictor, rollout_steps
+from wc.model_ref import is_hub_ref, resolve_model_dir
 from wc.train.config import TrainConfig
 
 class ZeroMotion:
@@ -55,12 +56,13 @@ def load_predictor(spec: MethodSpec, train_cfg: TrainConfig, device: torch.devic
         return ZeroMotion()
     if spec.kind == "constant_velocity":
         return ConstantVelocity()
-    if not Path(spec.path).is_dir():
+    if not is_hub_ref(spec.path) and not Path(spec.path).is_dir():
         raise FileNotFoundError(f"checkpoint directory {spec.path} not found")
+    path = resolve_model_dir(spec.path, "evaluate.methods path")  # hf://owner/repo[/folder]: downloaded
     if spec.kind == "worldcontact":
         overrides = {key: getattr(spec, key) for key in WORLDCONTACT_KEYS if getattr(spec, key) is not None}
         train_cfg = dataclasses.replace(train_cfg, **overrides)
-        return WorldContactPredictor.from_dir(spec.path, train_cfg, device)
+        return WorldContactPredictor.from_dir(path, train_cfg, device)
     from wc.baselines import load_baseline  # noqa: PLC0415 - written separately; optional until it lands
 
-    return load_baseline(spec.path, device)
+    return load_baseline(path, device)

@@ -1,7 +1,7 @@
 """The long-rollout stability figure drawn again from a stability CSV (a run's reports/stability.csv, or one a GPU job
 sent back without its PNG):
 
-    python -m wc.eval.replot reports/gpu/issue19/heldout_stability_final.csv out.png [--strain-bound 2.0]
+    python -m wc.eval.replot reports/gpu/lift_expansion/heldout_stability_final.csv out.png [--strain-bound 2.0]
 """
 
 from __future__ import annotations

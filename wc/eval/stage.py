@@ -46,6 +46,7 @@ from wc.model.predictor import WorldContactPredictor
 from wc.eval.stability import (CSV_HEADER, StabilityCurve, csv_rows, divergence_summary, first_divergence,
                               max_edge_strain)
 from wc.model.config import ModelConfig
+from wc.model_ref import model_record
 from wc.paths import EVALUATE
 from wc.reports import environment_info, write_csv_atomic, write_json_atomic
 from wc.scene.config import SceneConfig
@@ -55,6 +56,11 @@ from wc.train.data import Phase
 
 SECTIONS = ["evaluate", "scene", "model", "train", "sim"]
 GROUND_TRUTH = "ground_truth"
+
+
+def model_records(cfg: EvaluateConfig, methods: dict[str, Method]) -> dict[str, dict[str, Any]]:
+    """Path and weights SHA-256 (wc/model_ref.py) of every loaded method that has a checkpoint."""
+    return {m: model_record(spec.path) for m, spec in cfg.methods.items() if m in methods and spec.path}
 
 
 def load_methods(cfg: EvaluateConfig, train_cfg: TrainConfig, tag_scale: float, device: torch.device,
@@ -273,6 +279,7 @@ def evaluate(params: dict[str, Any], store_path: str | Path = EVALUATE["store"],
                       "methods": stability},
         "penetration": {"depth_m": cfg.penetration_depth_m, "contact_band_m": cfg.contact_band_m},
         "kinds": {m: spec.kind for m, spec in cfg.methods.items() if m in methods},
+        "models": model_records(cfg, methods),
         "dt": dt,
         "store": str(store_path),
         "params_hash": params_hash(params, SECTIONS),

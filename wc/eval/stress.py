@@ -35,7 +35,7 @@ from wc.eval.penetration import PenetrationTally, cloth_signed_distance
 from wc.eval.methods import Method, predict
 from wc.eval.newton_method import NewtonMethod
 from wc.eval.stability import CSV_HEADER, StabilityCurve, csv_rows
-from wc.eval.stage import GROUND_TRUTH, load_methods, stability_curve
+from wc.eval.stage import GROUND_TRUTH, load_methods, model_records, stability_curve
 from wc.eval.stress_config import StressConfig
 from wc.eval.stress_truth import ground_truth
 from wc.eval.video import side_by_side_video
@@ -287,6 +287,7 @@ def stress(params: dict[str, Any], store: str | Path = STRESS["store"], csv: str
         "episodes": episodes,
         "table": rows,
         "skipped": skipped,
+        "models": model_records(eval_cfg, methods),
         "ground_truth": truth,
         "rollout_frames": cfg.rollout_frames,
         "divergence": {"strain": eval_cfg.divergence_strain, "penetration_pct": eval_cfg.divergence_penetration_pct},

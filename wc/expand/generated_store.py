@@ -17,9 +17,12 @@ def copy_scene(src: TrajectoryStore, writer: TrajectoryWriter) -> None:
         writer.add_prescribed(p.name, p.local_points, p.local_normals, p.tag, p.link)
 
 
-def episode_attrs(planned: PlannedEpisode, source: SourceEpisode, failure: str | None = None) -> dict[str, Any]:
-    """A generated episode's attrs: accepted when failure is None, else its first failing check."""
+def episode_attrs(planned: PlannedEpisode, source: SourceEpisode, failure: str | None = None,
+                  model_sha256: str | None = None) -> dict[str, Any]:
+    """A generated episode's attrs: accepted when failure is None, else its first failing check; the SHA-256 of the
+    weights that generated it."""
     s = planned.spec
     return {"task": s.task, "seed": s.seed, "cell": s.cell, "speed": s.speed, "amplitude": s.amplitude,
             "split": "train", "accepted": failure is None, "first_failure": failure, "source": "worldcontact",
-            "parent": planned.parent, "yaw_deg": planned.yaw_deg, "shift_m": list(planned.shift_m), **source.layout}
+            "parent": planned.parent, "yaw_deg": planned.yaw_deg, "shift_m": list(planned.shift_m),
+            "model_sha256": model_sha256, **source.layout}

@@ -80,8 +80,8 @@ class SlotModel:
 
 
 def run_slots(model: SlotModel, pool: PlanPool, task: Task, scene: Scene, sources: list[SourceEpisode], wanted: int,
-              writer: TrajectoryWriter | None, rejected_writer: TrajectoryWriter | None,
-              started: float) -> SlotExpansion:
+              writer: TrajectoryWriter | None, rejected_writer: TrajectoryWriter | None, started: float,
+              model_sha256: str | None = None) -> SlotExpansion:
     """Expand on the slots, planning in `pool`, until the target is met or the attempts run out; each filed episode
     goes to `writer` (accepted) or `rejected_writer` (None: not kept). Returns the finished expansion (its counts and
     timing)."""
@@ -96,7 +96,8 @@ def run_slots(model: SlotModel, pool: PlanPool, task: Task, scene: Scene, source
         links_poses, env_poses = np.split(running.poses[:n], [links], axis=1)
         target.add_episode(x, v, running.planned.actions[:n], np.ascontiguousarray(links_poses),
                            np.ascontiguousarray(env_poses),
-                           **episode_attrs(running.planned, running.source, failure[0] if failure else None))
+                           **episode_attrs(running.planned, running.source, failure[0] if failure else None,
+                                           model_sha256))
 
     def filed(expansion: SlotExpansion) -> None:
         bar.n = expansion.accepted

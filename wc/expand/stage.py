@@ -35,6 +35,7 @@ from wc.config import load_section, params_hash, without_keys
 from wc.data.store import TrajectoryStore, TrajectoryWriter
 from wc.distributed import UnitsFailed, Unit, WorkerSpec, drive, every_unit, open_executor, uses_cuda
 from wc.model.predictor import CHECKPOINT
+from wc.model_ref import model_record, resolve_model_dir
 from wc.expand.config import ExpandConfig
 from wc.expand.generated_store import copy_scene, episode_attrs
 from wc.expand.plan_pool import PlanPool
@@ -55,9 +56,11 @@ from wc.scene.episode_scenes import EpisodeScenes
 SECTIONS = ["expand", "scene", "tasks", "validate", "train", "sim"]
 
 
-def _checkpoint_info(model_dir: Path) -> dict[str, Any]:
+def _checkpoint_info(model_ref: str | Path, model_dir: Path) -> dict[str, Any]:
+    """The report's record of the model: the reference as given, its weights' SHA-256, params hash, step, stage,
+    projection and frame dt."""
     config = json.loads(model_dir.joinpath(CHECKPOINT).with_suffix(".json").read_text())
-    return {"path": str(model_dir), **{k: config.get(k) for k in ("params_hash", "step", "stage", "projection", "dt")}}
+    return {**model_record(model_ref, model_dir / CHECKPOINT), **{k: config.get(k) for k in ("projection", "dt")}}
 
 
 class ExpandPlans:
@@ -67,9 +70,11 @@ class ExpandPlans:
     `max_minutes` from `started` (time.perf_counter())."""
 
     def __init__(self, task: Task, scene: Scene, sources: list[SourceEpisode], cfg: ExpandConfig,
-                 validate_cfg: ValidateConfig, dt: float, wanted: int, worker: WorkerSpec, started: float) -> None:
+                 validate_cfg: ValidateConfig, dt: float, wanted: int, worker: WorkerSpec, started: float,
+                 model_sha256: str | None = None) -> None:
         self.task, self.scene, self.sources, self.cfg, self.validate_cfg = task, scene, sources, cfg, validate_cfg
         self.dt, self.wanted, self.worker, self.started = dt, wanted, worker, started
+        self.model_sha256 = model_sha256  # recorded in every generated episode's attrs (the teacher check reports it)
         self.planner = CoveragePlanner()  # this run's outcomes only: the simulator's memory is about another dynamics
         self.attempts = self.generated = self.accepted = self.frames = self.in_flight = 0
         self.rollout_s = 0.0
@@ -128,9 +133,10 @@ class ExpandPlans:
                                       "reason": failure[0], "frame": failure[1], "frames": len(r.x), **detail})
                 if self.rejected_writer is not None:
                     self.rejected_writer.add_episode(r.x, r.v, r.action, r.link_poses, r.env_poses,
-                                                     **episode_attrs(p, source, failure[0]))
+                                                     **episode_attrs(p, source, failure[0], self.model_sha256))
                 continue
-            self.writer.add_episode(r.x, r.v, r.action, r.link_poses, r.env_poses, **episode_attrs(p, source))
+            self.writer.add_episode(r.x, r.v, r.action, r.link_poses, r.env_poses,
+                                    **episode_attrs(p, source, model_sha256=self.model_sha256))
             self.accepted += 1
             self.bar.update(1)
         self.bar.set_postfix(generated=self.generated, rejected=self.generated - self.accepted)
@@ -147,14 +153,15 @@ def expand(params: dict[str, Any], model_dir: str | Path = EXPAND["model"], stor
     cfg = load_section(params, "expand", ExpandConfig)
     scene_cfg = load_section(params, "scene", SceneConfig)
     validate_cfg = load_section(params, "validate", ValidateConfig)
-    store, out, model_dir = Path(store), Path(out), Path(model_dir)
+    model_ref, store, out = model_dir, Path(store), Path(out)
     rejected_out = Path(rejected_out) if rejected_out is not None else None
     if not store.exists():
         raise FileNotFoundError(f"source trajectory store {store} not found: run the validate stage first "
                                 "(`dvc repro validate`)")
-    if not (model_dir / CHECKPOINT).is_file():
-        raise FileNotFoundError(f"world model checkpoint {model_dir / CHECKPOINT} not found: run the train stage "
-                                "first (`dvc repro train`)")
+    try:  # a model folder, or hf://owner/repo[/folder]: downloaded once, every worker reads the local copy
+        model_dir = resolve_model_dir(model_ref, "expand --model")
+    except FileNotFoundError as err:
+        raise FileNotFoundError(f"world model: {err}: run the train stage first (`dvc repro train`)") from err
     if out.resolve() == store.resolve() or (rejected_out is not None and rejected_out.resolve() in (store.resolve(),
                                                                                                    out.resolve())):
         raise ValueError(f"expand would overwrite a store: its outputs {out} and {rejected_out} must differ from "
@@ -164,7 +171,7 @@ def expand(params: dict[str, Any], model_dir: str | Path = EXPAND["model"], stor
     src = TrajectoryStore(store)
     sources, scene = source_episodes(src, task, EpisodeScenes(scene_cfg, src), cfg.max_sources)
     dt = src.dt
-    checkpoint = _checkpoint_info(model_dir)
+    checkpoint = _checkpoint_info(model_ref, model_dir)
     if checkpoint["dt"] is not None and abs(float(checkpoint["dt"]) - dt) > 1e-9:
         raise ValueError(f"{model_dir}: the model was trained at frame dt {checkpoint['dt']} s, {store} has {dt} s")
     phash = params_hash(without_keys(params, "expand", ("executor",)), SECTIONS)
@@ -185,7 +192,8 @@ def expand(params: dict[str, Any], model_dir: str | Path = EXPAND["model"], stor
                 for w in (writer, rejected_writer):
                     if w is not None:
                         copy_scene(src, w)
-                slots = run_slots(model, pool, task, scene, sources, wanted, writer, rejected_writer, started)
+                slots = run_slots(model, pool, task, scene, sources, wanted, writer, rejected_writer, started,
+                                  checkpoint["sha256"])
         result = {**_report(slots, cfg, sources, checkpoint, store, out, rejected_out, phash, {"name": "local"},
                             str(model.device), environment_info(str(model.device)), time.perf_counter() - started),
                   "engine": "slots", "slots": cfg.batch_size, "sync_every": cfg.slots.sync_every,
@@ -198,7 +206,7 @@ def expand(params: dict[str, Any], model_dir: str | Path = EXPAND["model"], stor
     else:  # each Ray worker process loads the model once for this run
         worker = WorkerSpec(f"expand:{secrets.token_hex(8)}", load_expand_worker,
                             (params, str(model_dir.resolve()), str(store.resolve())))
-    plans = ExpandPlans(task, scene, sources, cfg, validate_cfg, dt, wanted, worker, started)
+    plans = ExpandPlans(task, scene, sources, cfg, validate_cfg, dt, wanted, worker, started, checkpoint["sha256"])
 
     failed = None
     with open_executor(cfg.executor, params, uses_cuda(cfg.device, validate_cfg.device)) as executor:

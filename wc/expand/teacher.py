@@ -81,7 +81,9 @@ def teacher_check(params: dict[str, Any], store_path: str | Path, limit: int | N
     plans = _generated(Path(store_path), cfg.task, limit)
     if rejected_path is not None:
         plans += _generated(Path(rejected_path), cfg.task, limit)
-    base = {"task": cfg.task, "store": str(store_path), "rejected_store": None if rejected_path is None else str(rejected_path)}
+    base = {"task": cfg.task, "store": str(store_path), "rejected_store": None if rejected_path is None else str(rejected_path),
+            # the weights that generated the plans (expand records their SHA-256 in each episode; None: not recorded)
+            "model_sha256": sorted({s.episode_attrs(e).get("model_sha256") or "not recorded" for s, e in plans})}
     if not plans:  # nothing generated: nothing to check, and the report says so
         return {**base, "plans": 0, "agreement": None, "precision": None, "recall": None, "confusion": {},
                 "mean_rms_error_m": None, "episodes": [], "wall_s": 0.0,

@@ -22,11 +22,12 @@ from wc.model.padded_neighbors import NeighborCapacity
 from wc.model.rollout import rollout
 from wc.model.static_rollout import StaticRollout
 from wc.model.worldcontact import WorldContact
+from wc.model_ref import WEIGHTS
 from wc.train.capacity import initial_capacities
 from wc.train.checkpoint import load_model
 from wc.train.config import TrainConfig
 
-CHECKPOINT = "model.safetensors"
+CHECKPOINT = WEIGHTS  # a saved model folder's weights file
 
 
 class Predictor(Protocol):
@@ -64,7 +65,7 @@ class WorldContactPredictor:
     def from_dir(cls, path: str | Path, train_cfg: TrainConfig, device: torch.device) -> WorldContactPredictor:
         """Load <path>/model.safetensors + model.json; the json's "projection" says whether P is applied, its
         "capacities" the static neighbour capacities measured in training (if it was trained on that path)."""
-        model, config = load_model(Path(path) / CHECKPOINT, device)
+        model, config = load_model(path, device)  # a model folder or hf://owner/repo[/folder] (wc/model_ref.py)
         capacities = capacities_from_dict(config["capacities"]) if config.get("capacities") else None
         return cls(model, bool(config.get("projection", False)), train_cfg, capacities)
 

@@ -53,8 +53,6 @@ def push_dataset(root: str | Path, repo_id: str, private: bool = False) -> str:
 
 
 def push(root: str, repo_id: str, private: bool = False) -> dict[str, str]:
-    """`push_dataset` as `python -m stages.push` runs it: a PushError ends it with `push: <error>` (status 1)."""
-    try:
-        return {"root": root, "url": push_dataset(root, repo_id, private=private)}
-    except PushError as err:
-        raise SystemExit(f"push: {err}") from None
+    """`push_dataset` as `python -m stages.push` runs it: a PushError is an expected error, ending the command with
+    `push: error: <reason>` and status 2 (wc.cli)."""
+    return {"root": root, "url": push_dataset(root, repo_id, private=private)}

@@ -21,6 +21,7 @@ from tqdm import tqdm
 from wc.atomic import remove_stale_temporaries
 from wc.config import load_section, params_hash
 from wc.devices import resolve_warp_device
+from wc.model_ref import file_sha256
 from wc.paths import POLICY_EVAL
 from wc.policy.comparison import FLAG, expanded_equals_source, trained_episodes
 from wc.policy.finetune import SUMMARY_FILE
@@ -92,7 +93,8 @@ def run(params: dict[str, Any], models_root: str | Path = POLICY_EVAL["models_ro
     timing: dict[str, Any] = {"s_per_step": {}, "policy_load_s": {}, "env_seconds": {}}
     for name, trials in by_policy(results).items():
         outcomes = [r.outcome | ({"video": str(videos_dir / r.job.video_name)} if r.job.record else {}) for r in trials]
-        policies[name] = _summary(outcomes, episodes[name]) | {"model": str(dirs[name])}
+        policies[name] = _summary(outcomes, episodes[name]) | {
+            "model": str(dirs[name]), "model_sha256": file_sha256(checkpoint_weights(dirs[name], f"policy {name!r}"))}
         timing["s_per_step"][name] = sum(r.s_per_step for r in trials) / len(trials)
         timing["policy_load_s"][name] = max(r.load_s for r in trials)
         for r in trials:

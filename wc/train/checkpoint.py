@@ -13,6 +13,7 @@ from safetensors.torch import load_file, save_file
 from wc.atomic import write_atomic
 from wc.model.config import ModelConfig
 from wc.model.worldcontact import WorldContact
+from wc.model_ref import resolve_weights
 
 
 def save_weights(model: WorldContact, path: Path, meta: dict[str, Any]) -> None:
@@ -30,8 +31,9 @@ def model_scales(model: WorldContact) -> dict[str, float | list[float]]:
 
 
 def load_model(path: str | os.PathLike[str], device: str | torch.device = "cpu") -> tuple[WorldContact, dict[str, Any]]:
-    """A WorldContact (eval mode) and its config dict from `path` (.safetensors with a sibling .json)."""
-    path = Path(path)
+    """A WorldContact (eval mode) and its config dict from `path`: a model folder (model.safetensors + model.json), a
+    .safetensors file with its sibling .json, or a Hugging Face Hub model hf://owner/repo[/folder] (wc/model_ref.py)."""
+    path = resolve_weights(path, "load_model")
     config_path = path.with_suffix(".json")
     for p in (path, config_path):
         if not p.is_file():

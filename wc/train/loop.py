@@ -29,6 +29,7 @@ from wc.model.fixed_neighbors import FixedNeighbors, capacities_from_dict, capac
 from wc.model.layout import SceneLayout, scene_layout
 from wc.model.rollout import Step, rollout
 from wc.model.worldcontact import WorldContact
+from wc.model_ref import model_record
 from wc.train import distributed
 from wc.train.capacity import data_capacities
 from wc.train.checkpoint import load_state, model_scales, restore_rng_states, rng_states, save_state, save_weights
@@ -328,7 +329,8 @@ def _finish(model: WorldContact, work: Path, out_dir: Path, cfg: TrainConfig, da
         "steps": {"base": cfg.base.steps, "projection": cfg.projection.steps},
         "train_windows": len(data.train_windows), "val_windows": len(data.val_windows),
         "event_window_share": data.event_share, "event_oversample": cfg.event_oversample,
-        "scales": model_scales(model), "init_from": cfg.init_from, "history": history,
+        "scales": model_scales(model), "init_from": cfg.init_from,
+        "init_model": model_record(cfg.init_from) if cfg.init_from else None, "history": history,
         "selected_by": cfg.select_by, "best_score": best[final],
         "selected": next((h for h in history if h["stage"] == final and h["score"] == best[final]), {}),
         "best_val_loss": min((h["val_loss"] for h in history if h["stage"] == final), default=float("nan")),
