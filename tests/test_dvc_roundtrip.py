@@ -142,13 +142,28 @@ def test_a_run_resumes_stage_by_stage_and_round_trips_through_the_remote(project
     assert "Running stage" not in again and skipped("train_baselines") in again
 
 
+def wheel_file(folder: Path, name: str) -> None:
+    """A minimal pure-Python wheel of package `name` (as `pip download` leaves one) in `folder`."""
+    import zipfile  # noqa: PLC0415
+
+    info = f"{name}-0.1.dist-info"
+    with zipfile.ZipFile(folder / f"{name}-0.1-py3-none-any.whl", "w") as whl:
+        whl.writestr(f"{name}/__init__.py", "WHEEL = True\n")
+        whl.writestr(f"{info}/METADATA", f"Metadata-Version: 2.1\nName: {name}\nVersion: 0.1\n")
+        whl.writestr(f"{info}/WHEEL", "Wheel-Version: 1.0\nGenerator: test\nRoot-Is-Purelib: true\nTag: py3-none-any\n")
+        whl.writestr(f"{info}/RECORD", "")
+
+
 def packed_wheels(folder: Path) -> Path:
-    """A pack as ../shared/gpu/pack-wheels.sh makes one (xz tar of tmp/site/<packages> in part-NN pieces), of one
-    tiny package."""
+    """Wheels for an offline machine in both forms the driver takes: a pack (an xz tar of tmp/site/<packages> split
+    into part-NN pieces, one folder each) of one tiny package, and a wheel file of another."""
     site = folder / "tmp" / "site" / "wheel_probe"
     site.mkdir(parents=True)
     (site / "__init__.py").write_text("PACKED = True\n")
-    sh(folder, "bash", "-c", "tar cf - tmp/site | xz -0 | split -b 100 -d - part-")
+    sh(folder, "bash", "-c", "tar cf - tmp/site | xz -0 | split -b 100 -d - part- && n=1 && "
+                             "for p in part-*; do mkdir $n && mv $p $n/ && n=$((n + 1)); done && rm -r tmp")
+    assert len(list(folder.glob("*/part-*"))) > 1  # several, in numbered folders: .gpu/1/part-00, .gpu/2/part-01...
+    wheel_file(folder / "1", "wheel_file_probe")
     return folder
 
 
@@ -171,7 +186,8 @@ def test_a_run_travels_as_pieces_to_a_checkout_with_no_remote(project, tmp_path)
     out = sh(bare, "env", "PUSH=0", f"WHEELS={wheels}", f"BASE_PYTHON={ROOT / '.venv/bin/python'}",
              "bash", "scripts/gpu/run_pipeline.sh", "run", RUN)  # no git either: DVC without an SCM
     assert "Running stage" not in out and skipped("train") in out
-    assert sh(bare, ".venv/bin/python", "-c", "import wheel_probe, dvc; print(wheel_probe.PACKED)").strip() == "True"
+    probe = "import wheel_probe, wheel_file_probe, dvc; print(wheel_probe.PACKED, wheel_file_probe.WHEEL)"
+    assert sh(bare, ".venv/bin/python", "-c", probe).strip() == "True True"
     dvc(bare, "checkout", "--with-deps", f"{RUN}/dvc.yaml")  # the files themselves, from the unpacked objects
     for path in OUTPUTS:
         assert same_bytes(project / path, bare / path), path

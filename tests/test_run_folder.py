@@ -75,20 +75,21 @@ def test_write_run_folder_resolves_the_params_and_keeps_the_root_untouched(tmp_p
         shutil.copy(ROOT / name, tmp_path / name)
     folder = tmp_path / "runs" / "tiny"
     folder.mkdir(parents=True)
-    (folder / "config.yaml").write_text("extends: ../../params.yaml\npipeline: {targets: [train]}\n"
+    (folder / "config.yaml").write_text("extends: ../../params.yaml\npipeline: {targets: [train, train_ablation]}\n"
                                         "train: {base: {steps: 3}}\n")
     written = write_run_folder(folder, tmp_path)
-    assert written["stages"] == ["simulate", "validate", "train"]
+    assert written["stages"] == ["simulate", "validate", "train", "train_ablation"]
     params = yaml.safe_load((folder / "params.yaml").read_text())
     expected = read_params(ROOT / "params.yaml", ["train.base.steps=3"])
     assert params == {k: v for k, v in expected.items() if k != "_source"}  # every value; no `pipeline` section
     assert yaml.safe_load((folder / "dvc.yaml").read_text())["stages"]["train"]["cmd"].startswith("../../.venv/")
     assert (tmp_path / "dvc.yaml").read_text() == (ROOT / "dvc.yaml").read_text()
-    (folder / "reports").mkdir()
-    (folder / "reports" / "train.json").write_text("{}")  # a cache-free output: part of the record
+    (folder / "reports" / "ablations").mkdir(parents=True)
+    for report in ("train.json", "ablations/no_contact_tokenizer.json"):  # cache-free outputs: part of the record
+        (folder / "reports" / report).write_text("{}")
     (folder / "data").mkdir()
-    assert record_files(folder) == [f"{folder.as_posix()}/{n}" for n in
-                                    ("config.yaml", "params.yaml", "dvc.yaml", "reports/train.json")]
+    assert record_files(folder) == [f"{folder.as_posix()}/{n}" for n in (
+        "config.yaml", "params.yaml", "dvc.yaml", "reports/train.json", "reports/ablations/no_contact_tokenizer.json")]
 
 
 @pytest.mark.parametrize("pipeline, problem", [

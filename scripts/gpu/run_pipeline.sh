@@ -12,8 +12,9 @@
 #
 # Environment of `run` and `pack`:
 #   WHEELS=DIR     an offline machine: .venv made on BASE_PYTHON (default python3, an interpreter with torch 2.11)
-#                  plus the packed wheels DIR/part-* (../shared/gpu/pack-wheels.sh; scripts/gpu/missing_wheels.py
-#                  lists the ones a machine lacks). Without it: scripts/install.sh (network) unless .venv exists.
+#                  plus the wheels under DIR: *.whl files (pip download), or the part-* pieces of an xz tar of
+#                  tmp/site/<unpacked wheels>; scripts/gpu/missing_wheels.py lists what a machine lacks.
+#                  Without it: scripts/install.sh (network) unless .venv exists.
 #   PUSH=0         skip the final `dvc push` of the run's outputs to the default remote (.dvc/config)
 set -euo pipefail
 cd "$(dirname "$0")/../.."
@@ -29,15 +30,19 @@ dvc_in() { local run=$1; shift; (cd "$run" && "$OLDPWD/$PY" -m dvc "$@"); }
 # .venv from BASE_PYTHON + the wheels in $WHEELS: the base interpreter's packages (torch) stay visible through a .pth,
 # the wheels unpack into the venv, the repository is importable from any run folder
 venv_from_wheels() {
-  local base=${BASE_PYTHON:-python3} site
-  ls "$WHEELS"/part-* >/dev/null 2>&1 || fail "WHEELS=$WHEELS holds no part-* files (../shared/gpu/pack-wheels.sh)"
+  local base=${BASE_PYTHON:-python3} site wheels parts stamp
+  wheels=$(find "$WHEELS" -type f -name '*.whl' | sort)
+  # a pack's parts are numbered across its folders (.gpu/1/part-00, .gpu/2/part-01, ...): all, in that order
+  parts=$(find "$WHEELS" -type f -name 'part-*' -printf '%f %p\n' | sort | cut -d' ' -f2-)
+  [ -n "$wheels$parts" ] || fail "WHEELS=$WHEELS holds no *.whl or part-* files"
   "$base" -c 'import sys; sys.exit(sys.version_info[:2] != (3, 12))' || fail "BASE_PYTHON=$base is not Python 3.12"
   [ -x $PY ] || "$base" -m venv --without-pip .venv
-  local stamp; stamp=$(ls -l "$WHEELS"/part-* | md5sum)
+  stamp=$(ls -l $wheels $parts | md5sum)
   [ "$(cat .venv/wheels.md5 2>/dev/null)" = "$stamp" ] && return  # these wheels are in already
   site=$($PY -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')
   "$base" -c 'import site; print("\n".join(site.getsitepackages()))' > "$site/base_python.pth"
-  cat "$WHEELS"/part-* | xz -dc -T0 | tar x -C "$site" --strip-components=2  # pack-wheels.sh packs tmp/site/...
+  [ -z "$parts" ] || cat $parts | xz -dc -T0 | tar x -C "$site" --strip-components=2  # a pack holds tmp/site/...
+  [ -z "$wheels" ] || "$base" -m pip install -q --no-index --no-deps --no-compile --upgrade --target "$site" $wheels
   echo "$PWD" > "$site/worldcontact_repository.pth"
   echo "$stamp" > .venv/wheels.md5
 }
@@ -74,7 +79,7 @@ pack() {
   $PY -m dvc remote add --local --force pack "$TMP/objects"  # a remote of its own: only these stages' objects
   dvc_in "$run" push -r pack "${targets[@]}"
   $PY -m dvc remote remove --local pack
-  mkdir -p "$TMP/stage/.dvc/cache" "$dest"
+  mkdir -p "$TMP/stage/.dvc/cache" "$dest" && rm -f "$dest"/run.tar.*
   [ ! -d "$TMP/objects" ] || cp -r "$TMP/objects/." "$TMP/stage/.dvc/cache/"
   $PY -m wc.run_folder --record "$run" | tar cf - -T - | tar x -C "$TMP/stage"
   tar cf - -C "$TMP/stage" . | split -b "${PIECE_MB:-15}M" -d - "$dest/run.tar."
