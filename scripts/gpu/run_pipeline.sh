@@ -20,6 +20,7 @@ set -euo pipefail
 cd "$(dirname "$0")/../.."
 PY=.venv/bin/python
 export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"  # this checkout's code, from any run folder
+export HF_HUB_OFFLINE=${HF_HUB_OFFLINE:-1}  # the pipeline reads no hub: no network waits on an offline machine
 TMP=$(mktemp -d); trap 'rm -rf "$TMP"' EXIT
 usage() { echo "usage: $0 run RUN [STAGE] | pack RUN DEST [STAGE ...] | unpack SRC" >&2; exit 2; }
 fail() { echo "run_pipeline: error: $*" >&2; exit 2; }
