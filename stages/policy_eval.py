@@ -1,6 +1,6 @@
 """Stage `policy_eval`: closed-loop evaluation of the trained policies (models/policy/{source,expanded}) in the
 Newton simulator on the same trial seeds -> reports/policy.json, reports/policy_videos/,
-reports/policy_success.{csv,png}.
+reports/policy_success.{csv,json,png} (the json: per-arm DVC metrics).
 
     python -m stages.policy_eval [--params params.yaml] [--set policy_eval.trials=20 ...]
 

@@ -162,6 +162,19 @@ def test_an_override_file_extends_its_base(tmp_path):
         read_params(tmp_path / "orphan.yaml")
 
 
+def test_an_override_file_extends_several_bases_in_order(tmp_path):
+    """`extends: [a, b]`: b merged on top of a, then the file itself on top; each base may extend its own."""
+    (tmp_path / "a.yaml").write_text("sim: {worlds: 1, dt_s: 0.04}\npolicy: {steps: 80, lr: 1.0}\n")
+    (tmp_path / "b.yaml").write_text("extends: a.yaml\npolicy: {steps: 3500}\n")
+    (tmp_path / "recipe.yaml").write_text("policy: {lr: 2.0}\n")
+    (tmp_path / "run.yaml").write_text("extends: [b.yaml, recipe.yaml]\nsim: {worlds: 8}\n")
+    params = read_params(tmp_path / "run.yaml")
+    assert params["sim"] == {"worlds": 8, "dt_s": 0.04} and params["policy"] == {"steps": 3500, "lr": 2.0}
+    (tmp_path / "bad.yaml").write_text("extends: [a.yaml, 3]\n")
+    with pytest.raises(ParamsError, match="extends must name a params file or a list of them"):
+        read_params(tmp_path / "bad.yaml")
+
+
 def test_the_gpu_params_list_only_what_differs_from_the_defaults():
     """params/gpu.yaml is an override of params.yaml: every value it sets differs from the default it overrides."""
     from wc.config import _ParamsLoader

@@ -25,6 +25,7 @@ from wc.policy.finetune import SUMMARY_FILE
 from wc.policy_eval.config import PolicyEvalConfig
 from wc.policy_eval.env import WorldContactLiftEnv
 from wc.policy_eval.closed_loop import OracleActor, run_episode
+from wc.policy_eval.plots import CSV_HEADER, write_success_metrics, write_success_table
 from wc.policy_eval.stage import policy_dirs, run
 from wc.policy_eval.success import LiftHoldMonitor, first_success, hold_frames, wilson_interval
 from wc.policy_eval.trials import run_trials, trial_jobs
@@ -170,7 +171,7 @@ def test_stage_end_to_end_in_worker_processes(tmp_path: Path) -> None:
         (tmp_path / "models" / name / SUMMARY_FILE).write_text(json.dumps({"episodes": 3}))  # as finetune records
     params = _params(trials=2, seed=ORACLE_SEED, max_steps=2, videos=1, workers=2)
     paths = dict(report=tmp_path / "policy.json", videos_dir=tmp_path / "videos", table=tmp_path / "rates.csv",
-                 plot=tmp_path / "rates.png")
+                 metrics=tmp_path / "rates.json", plot=tmp_path / "rates.png")
     report = run(params, tmp_path / "models", progress=False, **paths)
     saved = json.loads(paths["report"].read_text())
     assert saved["seeds"] == [ORACLE_SEED, ORACLE_SEED + 1] and set(saved["success_rate"]) == {"source", "expanded"}
@@ -187,6 +188,7 @@ def test_stage_end_to_end_in_worker_processes(tmp_path: Path) -> None:
     videos = sorted(p.name for p in paths["videos_dir"].iterdir())
     assert videos == [f"expanded_trial00_seed{ORACLE_SEED}.mp4", f"source_trial00_seed{ORACLE_SEED}.mp4"]
     assert paths["table"].read_text().splitlines()[0] == "policy,successes,trials,success_rate,ci95_low,ci95_high"
+    assert json.loads(paths["metrics"].read_text())["expanded"]["trials"] == 2
     assert paths["plot"].stat().st_size > 0 and report["params_hash"] == saved["params_hash"]
     assert report["timing"]["s_per_step"]["source"] > 0 and report["timing"]["workers"] == 2
     assert report["timing"]["env_seconds"]["physics"] > 0 and report["timing"]["policy_load_s"]["expanded"] > 0
@@ -195,6 +197,22 @@ def test_stage_end_to_end_in_worker_processes(tmp_path: Path) -> None:
                       tmp_path / "unused", workers=1)
     assert [r.outcome for r in here] == [{k: v for k, v in o.items() if k != "video"}
                                          for o in saved["policies"]["source"]["outcomes"]]
+
+
+def test_per_arm_metrics_match_the_table(tmp_path: Path) -> None:
+    """reports/policy_success.json (DVC metrics): per arm its own counts, rate and Wilson interval, low before high,
+    the same figures as the CSV row; nothing else (no timings)."""
+    policies = {arm: {"successes": k, "trials": 50, "success_rate": k / 50, "ci95": list(wilson_interval(k, 50)),
+                      "outcomes": [], "failures": {"dropped": 50 - k}} for arm, k in (("source", 37), ("expanded", 45))}
+    write_success_metrics(tmp_path / "m.json", policies)
+    write_success_table(tmp_path / "t.csv", policies)
+    metrics = json.loads((tmp_path / "m.json").read_text())
+    assert set(metrics) == {"source", "expanded"}
+    assert metrics["expanded"] == {"successes": 45, "trials": 50, "success_rate": 0.9,
+                                   "ci95_low": pytest.approx(0.786, abs=1e-3), "ci95_high": pytest.approx(0.957, abs=1e-3)}
+    assert metrics["source"]["successes"] == 37 and metrics["source"]["ci95_low"] < 0.74 < metrics["source"]["ci95_high"]
+    rows = (tmp_path / "t.csv").read_text().splitlines()[1:]
+    assert [float(v) for v in rows[1].split(",")[1:]] == pytest.approx([metrics["expanded"][k] for k in CSV_HEADER[1:]])
 
 
 def test_wilson_interval() -> None:

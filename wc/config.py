@@ -54,7 +54,8 @@ def merged(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:
 
 
 def _load_params_file(path: Path, seen: tuple[Path, ...] = ()) -> dict[str, Any]:
-    """One params file as a dict; a file with `extends: <base>` (relative to it) is loaded on top of that base."""
+    """One params file as a dict; a file with `extends: <base>` or `extends: [<base>, ...]` (relative to it) is
+    loaded on top of its bases, merged in order."""
     if not path.is_file():
         raise ParamsError(f"params file not found: {path}" + (f" (extended by {seen[-1]})" if seen else ""))
     if path.resolve() in seen:
@@ -65,12 +66,16 @@ def _load_params_file(path: Path, seen: tuple[Path, ...] = ()) -> dict[str, Any]
         raise ParamsError(f"{path}: not valid YAML: {err}") from err
     if not isinstance(data, dict):
         raise ParamsError(f"{path}: top level must be a mapping, got {type(data).__name__}")
-    base = data.pop("extends", None)
-    if base is None:
+    bases = data.pop("extends", None)
+    if bases is None:
         return data
-    if not isinstance(base, str):
-        raise ParamsError(f"{path}: extends must name one params file, got {base!r}")
-    return merged(_load_params_file(path.parent / base, (*seen, path.resolve())), data)
+    bases = [bases] if isinstance(bases, str) else bases
+    if not isinstance(bases, list) or not bases or not all(isinstance(b, str) for b in bases):
+        raise ParamsError(f"{path}: extends must name a params file or a list of them, got {bases!r}")
+    loaded: dict[str, Any] = {}
+    for base in bases:
+        loaded = merged(loaded, _load_params_file(path.parent / base, (*seen, path.resolve())))
+    return merged(loaded, data)
 
 
 def read_params(path: str | Path, overrides: list[str] | None = None) -> dict[str, Any]:
@@ -78,6 +83,7 @@ def read_params(path: str | Path, overrides: list[str] | None = None) -> dict[st
 
     A file may start from another: `extends: ../params.yaml` (relative to the file) loads that one first and puts
     this file's values on top, mappings merged key by key; a mapping tagged `!replace` replaces the base's whole.
+    `extends: [a.yaml, b.yaml]` merges b on top of a, then this file on top of both.
     """
     path = Path(path)
     data = _load_params_file(path)

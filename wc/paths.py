@@ -33,7 +33,8 @@ DATASET = {"source_trajectories": SOURCE_TRAJECTORIES, "source_frames": SOURCE_F
            "report": "reports/dataset.json"}
 FINETUNE = {"data_root": "data/lerobot", "out_root": "models/policy", "report": "reports/finetune.json"}
 POLICY_EVAL = {"models_root": "models/policy", "report": "reports/policy.json", "videos": "reports/policy_videos",
-               "table": "reports/policy_success.csv", "plot": "reports/policy_success.png"}
+               "table": "reports/policy_success.csv", "metrics": "reports/policy_success.json",
+               "plot": "reports/policy_success.png"}
 SUMMARY = {"reports": "reports", "headline": "reports/headline.json", "results": "reports/RESULTS.md"}
 
 STAGES: dict[str, dict[str, str]] = {

@@ -17,18 +17,22 @@ from wc.results_page import gpu_headlines, read_policy_report, results_markdown
 
 @dataclass(frozen=True)
 class Headline:
-    """One figure: its key in headline.json, the report it comes from and the dotted path to it there."""
+    """One figure: its key in headline.json, the report it comes from and the dotted path to it there. A wall-clock
+    rate (`metric` false) differs on every machine, so it is shown in RESULTS.md but kept out of the DVC metrics
+    file, where `dvc metrics diff` would report it changed between any two machines' runs."""
 
     key: str
     report: str
     path: str
     label: str
+    metric: bool = True
 
 
 HEADLINES = (
     Headline("simulate.accepted", "simulate.json", "accepted", "source episodes accepted"),
     Headline("simulate.episodes", "simulate.json", "episodes", "source episodes simulated"),
-    Headline("simulate.episodes_per_min", "simulate.json", "episodes_per_min", "simulated episodes per minute"),
+    Headline("simulate.episodes_per_min", "simulate.json", "episodes_per_min",
+             "simulated episodes per minute (this machine)", metric=False),
     Headline("train.best_val_loss", "train.json", "best_val_loss", "WorldContact best validation loss"),
     Headline("train.constant_velocity_val_loss", "train.json", "constant_velocity_val_loss",
              "constant velocity, same validation windows"),
@@ -42,7 +46,8 @@ HEADLINES = (
              "methods.worldcontact.penetration_rate_pct", "WorldContact penetration rate (%)"),
     Headline("expand.generated", "expand.json", "generated", "generated episodes"),
     Headline("expand.accepted", "expand.json", "accepted", "generated episodes accepted"),
-    Headline("expand.trajectories_per_min", "expand.json", "trajectories_per_min", "generated trajectories per minute"),
+    Headline("expand.trajectories_per_min", "expand.json", "trajectories_per_min",
+             "generated trajectories per minute (this machine)", metric=False),
     Headline("teacher_check.plans", "teacher_check.json", "plans", "teacher check: plans replayed in Newton"),
     Headline("teacher_check.agreement", "teacher_check.json", "agreement", "teacher check: verdicts agree"),
     Headline("teacher_check.precision", "teacher_check.json", "precision",
@@ -78,11 +83,12 @@ def headline_figures(reports: Path) -> dict[str, Any]:
 
 
 def write_summary(reports: Path, headline: Path, results: Path) -> dict[str, Any]:
-    """Write headline.json and RESULTS.md (atomically); returns the figures. A GPU report of no declared kind, or
-    without one of its kind's headline fields, is a HeadlineError (a ValueError) and nothing is written."""
+    """Write headline.json (the `metric` figures: DVC's metrics) and RESULTS.md (all of them), atomically; returns
+    the figures. A GPU report of no declared kind, or without one of its kind's headline fields, is a HeadlineError (a
+    ValueError) and nothing is written."""
     figures = headline_figures(reports)
     text = results_markdown(gpu_headlines(reports), figures, HEADLINES, read_policy_report(reports))
-    write_json_atomic(headline, figures)
+    write_json_atomic(headline, {h.key: figures[h.key] for h in HEADLINES if h.metric})
     write_atomic(results, lambda p: p.write_text(text))
     return figures
 

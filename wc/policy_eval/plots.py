@@ -1,4 +1,4 @@
-"""The success rates side by side: a CSV for DVC's plot and a bar chart PNG."""
+"""The success rates side by side: a CSV for DVC's plot, a JSON for DVC's metrics and a bar chart PNG."""
 
 from __future__ import annotations
 
@@ -6,15 +6,25 @@ from pathlib import Path
 from typing import Any
 
 from wc.policy.comparison import flagged_title
-from wc.reports import pyplot, save_figure_atomic, write_csv_atomic
+from wc.reports import pyplot, save_figure_atomic, write_csv_atomic, write_json_atomic
 
 CSV_HEADER = ["policy", "successes", "trials", "success_rate", "ci95_low", "ci95_high"]
 
 
+def _figures(p: dict[str, Any]) -> list[Any]:
+    """A policy's CSV_HEADER[1:] values: successes, trials, success rate, its 95 % Wilson interval."""
+    return [p["successes"], p["trials"], p["success_rate"], *p["ci95"]]
+
+
 def write_success_table(path: str | Path, policies: dict[str, dict[str, Any]]) -> Path:
     """One row per policy: successes, trials, success rate and its 95 % Wilson interval."""
-    return write_csv_atomic(path, CSV_HEADER, [[name, p["successes"], p["trials"], p["success_rate"], *p["ci95"]]
-                                               for name, p in policies.items()])
+    return write_csv_atomic(path, CSV_HEADER, [[name, *_figures(p)] for name, p in policies.items()])
+
+
+def write_success_metrics(path: str | Path, policies: dict[str, dict[str, Any]]) -> None:
+    """{policy: {successes, trials, success_rate, ci95_low, ci95_high}}: the per-arm figures `dvc metrics show` and
+    `dvc metrics diff` compare (no timings: two machines' runs of the same params do not differ)."""
+    write_json_atomic(path, {name: dict(zip(CSV_HEADER[1:], _figures(p))) for name, p in policies.items()})
 
 
 def plot_success_rates(path: str | Path, policies: dict[str, dict[str, Any]], task: str,

@@ -1,6 +1,7 @@
 """The policy_eval stage: every trained policy (models/policy/<policy.datasets>) runs the same `trials` seeded
 closed-loop episodes of the lift task -> reports/policy.json (success counts and rates side by side,
-95 % Wilson intervals, per-trial outcomes), mp4 videos of the first `videos` trials per policy, a CSV + bar chart of the rates.
+95 % Wilson intervals, per-trial outcomes), mp4 videos of the first `videos` trials per policy, a CSV + bar chart of the rates
+and reports/policy_success.json (per arm: successes, trials, rate, interval; DVC metrics).
 
 Same params -> same report, apart from the `timing` entry, with any number of `policy_eval.workers` (trials run in
 worker processes, wc.policy_eval.trials). Missing policy directories fail before any
@@ -28,7 +29,7 @@ from wc.policy.finetune import SUMMARY_FILE
 from wc.policy.policy_config import PolicyConfig
 from wc.policy.pretrained import checkpoint_weights
 from wc.policy_eval.config import PolicyEvalConfig
-from wc.policy_eval.plots import plot_success_rates, write_success_table
+from wc.policy_eval.plots import plot_success_rates, write_success_metrics, write_success_table
 from wc.policy_eval.success import wilson_interval
 from wc.policy_eval.trials import TrialResult, by_policy, run_trials, trial_jobs
 from wc.reports import environment_info, replace_dir, write_json_atomic
@@ -60,10 +61,10 @@ def _summary(outcomes: list[dict[str, Any]], episodes: int | None) -> dict[str, 
 
 def run(params: dict[str, Any], models_root: str | Path = POLICY_EVAL["models_root"],
         report: str | Path = POLICY_EVAL["report"], videos_dir: str | Path = POLICY_EVAL["videos"],
-        table: str | Path = POLICY_EVAL["table"], plot: str | Path = POLICY_EVAL["plot"],
-        progress: bool = True) -> dict[str, Any]:
+        table: str | Path = POLICY_EVAL["table"], metrics: str | Path = POLICY_EVAL["metrics"],
+        plot: str | Path = POLICY_EVAL["plot"], progress: bool = True) -> dict[str, Any]:
     """Evaluate each policy of `policy.datasets` on trial seeds policy_eval.seed + [0, trials) (in
-    `policy_eval.workers` processes); write the report, videos, table and plot. Returns the report."""
+    `policy_eval.workers` processes); write the report, videos, table, per-arm metrics and plot. Returns the report."""
     cfg = load_section(params, "policy_eval", PolicyEvalConfig)
     policy_cfg = load_section(params, "policy", PolicyConfig)
     dirs = policy_dirs(models_root, policy_cfg.datasets)
@@ -102,6 +103,7 @@ def run(params: dict[str, Any], models_root: str | Path = POLICY_EVAL["models_ro
                 timing["env_seconds"][key] = timing["env_seconds"].get(key, 0.0) + seconds
     equal = expanded_equals_source(episodes)
     write_success_table(table, policies)
+    write_success_metrics(metrics, policies)
     plot_success_rates(plot, policies, cfg.task, equal)
     timing |= {"wall_s": time.perf_counter() - started, "workers": cfg.workers, "environment": environment_info(device)}
     result = {
@@ -110,7 +112,8 @@ def run(params: dict[str, Any], models_root: str | Path = POLICY_EVAL["models_ro
         "lift_height_m": cfg.lift_height_m, "hold_s": cfg.hold_s, "max_steps": cfg.max_steps,
         "success_rate": {n: p["success_rate"] for n, p in policies.items()},
         "successes": {n: p["successes"] for n, p in policies.items()},
-        "policies": policies, "videos": str(videos_dir), "table": str(table), "plot": str(plot),
+        "policies": policies, "videos": str(videos_dir), "table": str(table), "metrics": str(metrics),
+        "plot": str(plot),
         "params_hash": params_hash(params, SECTIONS), "device": device, "timing": timing,
     }
     write_json_atomic(report, result)
