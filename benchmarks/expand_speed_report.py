@@ -18,18 +18,23 @@ def markdown(report: dict[str, Any]) -> str:
     lines = [f"# Accepted {report['task']} episodes per minute: Newton against the world model's expansion", "",
              f"{env.get('gpu', env.get('device'))}; torch {env.get('torch')}, warp {env.get('warp')}, newton "
              f"{env.get('newton')}. {report['what']}.", "",
-             "| vertices | Newton accepted/min (worlds) | WorldContact accepted/min | ratio | acceptance | teacher "
-             "agreement (plans) | RMS to Newton mm |", "|---|---|---|---|---|---|---|"]
+             "| run | vertices | Newton accepted/min (worlds) | WorldContact accepted/min | ratio | acceptance | "
+             "teacher agreement (plans) | RMS to Newton mm |", "|---|---|---|---|---|---|---|---|"]
     for r in report["rows"]:
-        lines.append(f"| {r['vertices']} | {_f(r['newton_accepted_per_min'])} ({r['newton_worlds']}) | "
+        lines.append(f"| {r.get('run', '-')} | {r['vertices']} | {_f(r['newton_accepted_per_min'])} ({r['newton_worlds']}) | "
                      f"{_f(r['worldcontact_accepted_per_min'])} | {_f(r['ratio'], '.2f')} | {_f(r['acceptance'], '.2f')} "
                      f"| {_f(r['teacher_agreement'], '.2f')} ({r['teacher_plans']}) | {_f(r['teacher_rms_mm'])} |")
     lines += ["", "## Newton per worlds count (reset, settle, plan, simulate, checks; after a warm-up batch)", "",
-              "| worlds | episodes | accepted | s | accepted/min | episodes/min | acceptance |",
-              "|---|---|---|---|---|---|---|"]
+              "| run | worlds | episodes | accepted | s | accepted/min | episodes/min | acceptance |",
+              "|---|---|---|---|---|---|---|---|"]
     for r in report["newton"]:
-        lines.append(f"| {r['worlds']} | {r['episodes']} | {r['accepted']} | {r['seconds']:.1f} | "
+        lines.append(f"| {r.get('run', '-')} | {r['worlds']} | {r['episodes']} | {r['accepted']} | {r['seconds']:.1f} | "
                      f"{r['accepted_per_min']:.1f} | {r['episodes_per_min']:.1f} | {r['acceptance']:.2f} |")
+    for r in report["rows"]:
+        if r.get("timing"):
+            lines += ["", f"## Where the expansion's time went ({r.get('run', '')}, {r.get('slots')} slots, "
+                          f"{r.get('generated')} generated)", "", "| phase | s |", "|---|---|"]
+            lines += [f"| {k} | {v:.1f} |" for k, v in r["timing"].items()]
     e = report.get("expand")
     if e:
         lines += ["", f"## The expansion ({e['engine']} engine, {e.get('slots')} slots)", "",
@@ -51,19 +56,66 @@ def chart(report: dict[str, Any], path: Path) -> None:
     """Accepted episodes per minute of Newton (each worlds count) and of the expansion, with the ratio."""
     plt = pyplot()
     fig, ax = plt.subplots(figsize=(6.4, 3.6))
-    labels = [f"Newton {r['worlds']} worlds" for r in report["newton"]]
+    labels = [f"Newton {r['worlds']} worlds {r.get('run', '')}".strip() for r in report["newton"]]
     values = [r["accepted_per_min"] for r in report["newton"]]
     colors = ["tab:gray"] * len(values)
     for r in report["rows"]:
-        labels.append(f"WorldContact ({r['vertices']} v)")
+        labels.append(f"WorldContact {r.get('run', '')} ({r['vertices']} v)")
         values.append(r["worldcontact_accepted_per_min"])
         colors.append("tab:blue")
     ax.barh(labels, values, color=colors)
     for y, v in enumerate(values):
         ax.text(v, y, f" {v:.0f}", va="center")
-    ratios = ", ".join(f"{r['ratio']:.1f}x at {r['vertices']} vertices" for r in report["rows"] if r["ratio"])
+    ratios = ", ".join(f"{r['ratio']:.2f}x" for r in report["rows"] if r["ratio"])
     ax.set_xlabel("accepted episodes per minute (checks included)")
     ax.set_title(f"{report['task']}: world model vs Newton ({ratios})", fontsize=10)
     fig.tight_layout()
     save_figure_atomic(fig, path)
     plt.close(fig)
+
+
+def combined(runs: list[tuple[str, dict[str, Any], dict[str, Any]]]) -> dict[str, Any]:
+    """One report from several benchmark runs on one device: (label, benchmark JSON, its expand report) each; a row
+    per run with Newton's best worlds count of that same run, the expansion's figures and its teacher check if it
+    ran (None where the run stopped before it)."""
+    rows, newton = [], []
+    for label, bench, expanded in runs:
+        best = max(bench["newton"], key=lambda r: r["accepted_per_min"])
+        teacher = bench.get("teacher") or {}
+        rms = teacher.get("mean_rms_error_m")
+        newton += [{**r, "run": label} for r in bench["newton"]]
+        rows.append({"run": label, "vertices": expanded.get("vertices", 306), "newton_worlds": best["worlds"],
+                     "newton_accepted_per_min": best["accepted_per_min"],
+                     "worldcontact_accepted_per_min": expanded["accepted_per_min"],
+                     "ratio": expanded["accepted_per_min"] / best["accepted_per_min"],
+                     "acceptance": expanded["acceptance_rate"], "generated": expanded["generated"],
+                     "teacher_agreement": teacher.get("agreement"), "teacher_plans": teacher.get("plans"),
+                     "teacher_rms_mm": None if rms is None else 1e3 * rms, "timing": expanded.get("timing"),
+                     "slots": expanded.get("slots"), "projection_stats": expanded.get("projection_stats")})
+    first = runs[0][1]
+    return {"benchmark": "expand_speed", "task": first["task"], "environment": first["environment"],
+            "what": first["what"], "commands": [r[1]["command"] for r in runs], "rows": rows, "newton": newton}
+
+
+def main(argv: list[str] | None = None) -> None:
+    """python -m benchmarks.expand_speed_report --run LABEL BENCH.json EXPAND.json [...] --out FILE.json: the combined
+    report, its .md and .png."""
+    import argparse  # noqa: PLC0415
+    import json  # noqa: PLC0415
+
+    from wc.reports import write_json_atomic  # noqa: PLC0415
+
+    parser = argparse.ArgumentParser(description=main.__doc__)
+    parser.add_argument("--run", nargs=3, action="append", metavar=("LABEL", "BENCH", "EXPAND"), required=True)
+    parser.add_argument("--out", required=True)
+    args = parser.parse_args(argv)
+    report = combined([(label, json.loads(Path(b).read_text()), json.loads(Path(e).read_text()))
+                       for label, b, e in args.run])
+    out = Path(args.out)
+    write_json_atomic(out, report)
+    out.with_suffix(".md").write_text(markdown(report))
+    chart(report, out.with_suffix(".png"))
+
+
+if __name__ == "__main__":
+    main()

@@ -206,6 +206,13 @@ def _paper_lift(v: dict[str, Any]) -> str:
             f"{_g(v['simulated_s_per_wall_s_aggregate'])} simulated s per wall s")
 
 
+def _expand_speed(v: dict[str, Any]) -> str:
+    rows = "; ".join(f"{vert} vertices: {_g(wc)} vs Newton {_g(nw)} accepted/min = {_g(ratio)}x (acceptance {_g(acc)})"
+                     for vert, nw, wc, ratio, acc in zip(*(v[f"rows.*.{k}"].values() for k in (
+                         "vertices", "newton_accepted_per_min", "worldcontact_accepted_per_min", "ratio", "acceptance"))))
+    return f"world-model expansion against Newton on {v['environment.gpu']}: {rows}"
+
+
 _POLICY = ("policy_type", "task", "lift_height_m", "hold_s")
 KINDS: tuple[ReportKind, ...] = (
     ReportKind("policy comparison", ("policy_*_arms.json",),
@@ -219,6 +226,9 @@ KINDS: tuple[ReportKind, ...] = (
                ("methods.*.position_mse_m2", "methods.*.per_task", "methods.worldcontact.penetration_rate_pct",
                 "stability.methods.*.diverged", "stability.methods.*.rollouts", "held_out.rollouts", "environment.gpu"),
                _table1),
+    ReportKind("expansion speed", ("expand_speed_*.json",),
+               ("rows.*.vertices", "rows.*.newton_accepted_per_min", "rows.*.worldcontact_accepted_per_min",
+                "rows.*.ratio", "rows.*.acceptance", "environment.gpu"), _expand_speed),
     ReportKind("expansion", ("expand_*.json",),
                ("accepted", "generated", "acceptance_rate", "accepted_per_min", "source_episodes", "expanded_total",
                 "model.path", "model.params_hash", "environment.gpu"), _expand),
