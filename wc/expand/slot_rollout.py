@@ -188,6 +188,15 @@ class SlotRollout:
         mask[slots] = True
         self.failures.reset(mask)
         self.fixed.prepare(self.x)
+        self._check_first_frames(mask)
+
+    @torch.no_grad()
+    def _check_first_frames(self, loaded: torch.Tensor) -> None:
+        """The one-frame checks on the loaded slots' frame 0 (a planned state can fail them: a parent that crosses
+        itself, a bag outside the workspace), recorded as failures at frame 0."""
+        _, crossing = self.fixed.rollback.crossings(self.fixed.bvh, self.x)
+        bad = self.checks(self.x, self.v, self.poses[:, 0, self.link_columns], crossing)
+        self.failures.record(bad, torch.zeros_like(self.t), loaded[:, None].expand_as(bad))
 
     def take(self, slots: list[int], frames: list[int]) -> list[tuple[np.ndarray, np.ndarray]]:
         """The trajectories (x, v) (T_s, N, 3) of slots, the first frames[s] + 1 frames of each (one copy)."""

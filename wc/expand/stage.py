@@ -13,9 +13,14 @@ verdict when `task_check`); only the episodes that pass are written, the others 
 failing check. Generation stops when the task's source episodes plus the accepted generated ones reach
 `target_trajectories`, or after `max_attempts` planned episodes; the report says whether the target was met.
 
-A batch's rollouts and checks are a work unit (wc.expand.worker), run in this process or, with `executor: ray`, as
-Ray tasks; the planning and the writing stay here, and the verdicts are filed in planning order
-(`ExpandPlans`, wc.distributed.streams), so either executor writes the same episodes.
+Two engines (`engine`), the same checks and stores:
+- `slots` (default): `batch_size` slots on the device, each rolling out its own episode and taking the next plan when
+  it ends or fails; the projection with fixed pass counts and the one-frame checks on the device, captured as CUDA
+  graphs; planning in worker processes beside the rollouts (wc.expand.slot_stage, slot_expansion, slot_rollout).
+- `batches`: the reference; a batch's rollouts and checks are a work unit (wc.expand.worker), run in this process
+  or, with `executor: ray`, as Ray tasks; the planning and the writing stay here, and the verdicts are filed in
+  planning order (`ExpandPlans`, wc.distributed.streams), so either executor writes the same episodes.
+Either way the verdicts are filed, and episodes written, in proposal order: the same params give the same stores.
 """
 
 from __future__ import annotations
