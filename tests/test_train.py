@@ -18,7 +18,7 @@ import torch
 from safetensors.torch import load_file
 
 from wc.train.train_stage import run
-from tests.conftest import default_params
+from tests.conftest import ROOT, default_params
 from tests.synthetic_store import write_synthetic_store
 from wc.config import ParamsError, load_section
 from wc.data.store import TrajectoryStore
@@ -388,7 +388,7 @@ def _train_final_weights(store_path: Path, out: Path, processes: int, static: bo
     cmd = [*launch, "-m", "tests.train_final_weights", str(out), "--store", str(store_path), "--out", str(out / "m"),
            "--report", str(out / "r.json"), "--curves", str(out / "c.csv"), *(a for o in overrides for a in ("--set", o))]
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    done = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600)
+    done = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=ROOT, timeout=600)
     assert done.returncode == 0, done.stderr[-3000:]
     return json.loads((out / "r.json").read_text())
 
