@@ -2,7 +2,10 @@
 config and synthetic trajectory stores in temporary directories.
 
 Tests that run Newton (simulator, renderer, kinematics), a whole stage or a stage subprocess, or that take more than
-a few seconds on a 2-core CPU carry the `slow` marker (pyproject.toml); `pytest -m "not slow"` runs the rest."""
+a few seconds on a 2-core CPU carry the `slow` marker (pyproject.toml); `pytest -m "not slow"` runs the rest.
+
+A test writes only into its temporary directories: the run fails, naming the paths, when anything under the checkout's
+data/, models/ or reports/ was created, changed or deleted (tests/output_guard.py)."""
 
 from __future__ import annotations
 
@@ -13,10 +16,16 @@ from typing import Any
 
 import pytest
 
+from tests.output_guard import OutputGuard
 from wc.config import load_section, read_params
 from wc.scene.config import SceneConfig
 
 ROOT = Path(__file__).resolve().parents[1]
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """Fingerprint the checkout's pipeline outputs now; compared when the session ends (tests/output_guard.py)."""
+    config.pluginmanager.register(OutputGuard(ROOT), "output_guard")
 
 
 def load_params(*overrides: str, file: str = "params.yaml") -> dict[str, Any]:

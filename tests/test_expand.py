@@ -224,9 +224,11 @@ def test_command_line(tmp_path, params, store_path, model_dir, capsys):
     path.write_text(yaml.safe_dump({k: v for k, v in params.items() if k != "_source"}))
     main(["--params", str(path), "--set", "expand.max_attempts=1", "--set", "expand.target_trajectories=3",
           "--model", str(model_dir), "--store", str(store_path), "--out", str(tmp_path / "c.zarr"),
-          "--report", str(tmp_path / "c.json")])
+          "--report", str(tmp_path / "c.json"), "--rejected-out", str(tmp_path / "rejected.zarr")])
     assert "expand lift_handle: 1/1 generated episodes accepted" in capsys.readouterr().out
-    assert json.loads((tmp_path / "c.json").read_text())["accepted"] == 1
+    report = json.loads((tmp_path / "c.json").read_text())
+    assert report["accepted"] == 1 and report["rejected_out"] == str(tmp_path / "rejected.zarr")
+    assert TrajectoryStore(tmp_path / "rejected.zarr").episode_ids == []  # written, empty: nothing was rejected
 
 
 @pytest.fixture(scope="module")

@@ -1,5 +1,5 @@
 """benchmarks.newton_convergence: the same specs at two iteration counts, Newton re-run against itself, the report,
-table and chart written; bad arguments named."""
+table and chart written; each setting's verdicts compared with the most-iterated one's; bad arguments named."""
 
 import json
 
@@ -21,14 +21,25 @@ def test_two_iteration_counts_on_the_same_specs(tmp_path):
     for row in (low, high):
         rerun, noisy = row["self_agreement"]
         assert (rerun["perturb_m"], noisy["perturb_m"]) == (0.0, 0.003) and rerun["plans"] == 2
-        assert 0.0 <= rerun["agreement"] <= 1.0 and sum(row["verdicts"].values()) == 2
+        assert sum(row["verdicts"].values()) == 2
         # another batch order moves a plan by float noise and VBD's unconverged colour order; 3 mm of noise further
         assert rerun["mean_rms_to_first_m"] < noisy["mean_rms_to_first_m"], row
-        assert row["most_iterated"] == 3 and row["rollout_s_per_episode"] > 0
         rejected = sum(n for verdict, n in row["verdicts"].items() if verdict != "accepted")
         assert sum(row["failures_by"].values()) <= rejected  # blow_up and penetration name their criterion or body
-    assert high["agreement_with_most_iterated"] == 1.0
     assert "| 1 | 20 | 2 |" in out.with_suffix(".md").read_text() and out.with_suffix(".png").stat().st_size > 0
+
+
+def test_agreement_is_with_the_most_iterated_setting_on_the_plans_both_ran():
+    """Verdicts per spec seed planted for three settings, the most iterated not the last: a row's agreement is the
+    share of the seeds both it and the most-iterated row planned whose verdicts agree (both accepted, or both
+    rejected for whatever reason)."""
+    rows = [{"iterations": 10}, {"iterations": 20}, {"iterations": 5}]
+    verdicts = [{1: "accepted", 2: "blow_up", 3: "accepted"},
+                {1: "accepted", 2: "penetration", 3: "not_lifted", 4: "accepted"},
+                {1: "blow_up", 2: "accepted", 4: "accepted", 5: "accepted"}]  # seed 5 unplanned at 20
+    newton_convergence.agreement_with_most_iterated(rows, verdicts)
+    assert [r["most_iterated"] for r in rows] == [20, 20, 20]
+    assert [r["agreement_with_most_iterated"] for r in rows] == pytest.approx([2 / 3, 1.0, 1 / 3])
 
 
 def test_bad_arguments_are_named(capsys):

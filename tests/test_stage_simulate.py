@@ -10,8 +10,13 @@ import pytest
 
 from wc.agent.simulate_stage import simulate
 from tests.conftest import ROOT, load_params
-from wc.config import ParamsError
+from wc.config import ParamsError, load_section
 from wc.data.store import TrajectoryStore
+from wc.scene.config import SceneConfig
+from wc.tasks.base import EpisodeSpec, get_task
+from wc.validate.config import ValidateConfig
+from wc.validate.predicates import first_failure
+from wc.validate.stage import EpisodeScenes
 
 SHORT = ["agent.tasks=[lift_handle]", "agent.episodes_per_task=1", "agent.max_attempts_per_task=1",
          "tasks.lift_handle.hold_s=0.2", "sim.settle_s=0.2"]
@@ -44,7 +49,17 @@ def test_smoke_default_params(tmp_path):
     assert ep["link_poses"].shape == (frames, 16, 7) and np.isfinite(ep["x"]).all()
     attrs = store.episode_attrs(eid)
     assert attrs["task"] == "lift_handle" and attrs["source"] == "simulator"
-    assert attrs["accepted"] == (attrs["first_failure"] is None)
+    # the verdict stored with the episode is the source checks', then the task's, on the stored arrays
+    params = load_params(*SHORT)
+    scene = EpisodeScenes(load_section(params, "scene", SceneConfig), store).scene(eid)
+    verdict = first_failure(scene, ep["x"], ep["v"], ep["action"], ep["link_poses"],
+                            load_section(params, "validate", ValidateConfig), frame_dt_s=store.dt)
+    if verdict is None:
+        spec = EpisodeSpec(attrs["task"], attrs["seed"], attrs["cell"], attrs["speed"], attrs["amplitude"])
+        reason = get_task(attrs["task"], params).check(scene, spec, ep["x"], ep["action"])
+        verdict = (reason, len(ep["x"]) - 1) if reason else None
+    assert (attrs["first_failure"], attrs["failure_frame"]) == (verdict or (None, None))
+    assert attrs["accepted"] is (verdict is None)
     written = json.loads((tmp_path / "simulate.json").read_text())
     assert written == json.loads(json.dumps(report, default=float))
     assert written["episodes"] == 1 and written["frames"] == frames
