@@ -30,8 +30,8 @@ from wc.validate.predicates import PREDICATES, cloth_rows, first_failure, table_
 from wc.validate.self_intersection import crossing_edges, unique_edges
 
 PLAIN, FOLDED = "ep_000000", "ep_000002"  # the source store's two lift_handle parents, in store order
-UNPROJECTED = dict(projection="none", untangle="none", self_contact=False, max_attempts=2, batch_size=2,
-                   target_trajectories=4)
+UNPROJECTED = dict(engine="batches", projection="none", untangle="none", self_contact=False, max_attempts=2,
+                   batch_size=2, target_trajectories=4)  # the reference engine: the slot engine always projects
 
 
 @pytest.fixture(scope="module")
