@@ -16,7 +16,7 @@ from wc.scene.config import SceneConfig
 from wc.tasks.base import EpisodeSpec, get_task
 from wc.validate.config import ValidateConfig
 from wc.validate.predicates import first_failure
-from wc.validate.stage import EpisodeScenes
+from wc.scene.episode_scenes import EpisodeScenes
 
 SHORT = ["agent.tasks=[lift_handle]", "agent.episodes_per_task=1", "agent.max_attempts_per_task=1",
          "tasks.lift_handle.hold_s=0.2", "sim.settle_s=0.2"]

@@ -266,5 +266,6 @@ class SlotExpansion:
 
     def timing(self) -> dict[str, float]:
         """Seconds per host phase and per device part of a frame."""
+        device = self.rollout.part_s if self.rollout is not None else {}  # no episode ran: no slots were made
         return {**{f"host_{k}_s": v for k, v in self.timer.seconds.items()},
-                **{f"device_{k}_s": v for k, v in self.rollout.part_s.items()}}
+                **{f"device_{k}_s": v for k, v in device.items()}}

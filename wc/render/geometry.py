@@ -18,7 +18,7 @@ from wc.data.store import TrajectoryStore
 from wc.scene.config import SceneConfig, TableConfig
 from wc.scene.robot_geometry import LinkShape, piper_link_shapes
 from wc.scene.scene import Scene, build_objects
-from wc.validate.stage import episode_held
+from wc.scene.episode_scenes import episode_held
 
 Rgb = tuple[float, float, float]
 
