@@ -15,6 +15,8 @@ from __future__ import annotations
 import argparse
 import tempfile
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -64,6 +66,29 @@ def _timed(rollout: Any, plan: SlotPlan, frames: int) -> tuple[float, np.ndarray
     return wall, rollout.take([0], [frames - 1])[0][0]
 
 
+@contextmanager
+def slot_models(params: dict[str, Any], model_dir: str, frames: int) -> Iterator[tuple[SlotPlan, Any]]:
+    """(the scripted plan, make(slots) -> SlotModel): the params' task scene, its store (scene only, in a temporary
+    folder) and the shipped model for any number of slots."""
+    scene_cfg, sim_cfg = load_section(params, "scene", SceneConfig), load_section(params, "sim", SimConfig)
+    task = get_task(load_section(params, "expand", ExpandConfig).task, params)
+    scene = build_scene(scene_cfg, task.objects, held=task.held())
+    plan = scripted_plan(scene, frames)
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "scene.zarr"
+        with simulator_store(path, scene_cfg, sim_cfg, [task], "smoke", "benchmarks.expand_smoke"):
+            pass
+        store = TrajectoryStore(path)
+        source = SourceEpisode("none", 0, plan.x0, {}, plan.x0)
+
+        def make(slots: int) -> SlotModel:
+            params["expand"]["batch_size"] = slots
+            return SlotModel(params, Path(model_dir), scene, store, [source],
+                             load_section(params, "expand", ExpandConfig), load_section(params, "validate", ValidateConfig))
+
+        yield plan, make
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     add_params_arguments(parser)
@@ -74,21 +99,10 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--out", default="reports/expand_smoke.json")
     args = parser.parse_args(argv)
     params = read_params(args.params, [*args.overrides, f"expand.device={args.device}"])
-    scene_cfg, sim_cfg = load_section(params, "scene", SceneConfig), load_section(params, "sim", SimConfig)
-    task = get_task(load_section(params, "expand", ExpandConfig).task, params)
-    scene = build_scene(scene_cfg, task.objects, held=task.held())
-    plan = scripted_plan(scene, args.frames)
     rows: list[dict[str, Any]] = []
-    with tempfile.TemporaryDirectory() as tmp:
-        path = Path(tmp) / "scene.zarr"
-        with simulator_store(path, scene_cfg, sim_cfg, [task], "smoke", "benchmarks.expand_smoke"):
-            pass
-        store = TrajectoryStore(path)
-        source = SourceEpisode("none", 0, plan.x0, {}, plan.x0)
+    with slot_models(params, args.model, args.frames) as (plan, make):
         for k, slots in enumerate(int(s) for s in args.slots.split(",")):
-            params["expand"]["batch_size"] = slots
-            model = SlotModel(params, Path(args.model), scene, store, [source],
-                              load_section(params, "expand", ExpandConfig), load_section(params, "validate", ValidateConfig))
+            model = make(slots)
             graphed = model.rollout(args.frames)
             wall, x_graph = _timed(graphed, plan, args.frames)
             row = {"slots": slots, "ms_per_frame": 1e3 * wall / (args.frames - 1),

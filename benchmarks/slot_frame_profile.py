@@ -10,27 +10,17 @@ static capacities (`expand.slots.*_capacity`).
 from __future__ import annotations
 
 import argparse
-import tempfile
 import time
-from pathlib import Path
 from typing import Any
 
 import torch
 
-from benchmarks.expand_smoke import scripted_plan
-from wc.agent.runner import simulator_store
-from wc.config import add_params_arguments, load_section, read_params
-from wc.data.store import TrajectoryStore
-from wc.expand.config import ExpandConfig
+from benchmarks.expand_smoke import slot_models
+from wc.config import add_params_arguments, read_params
+from wc.expand.body_contacts import push_out
 from wc.expand.constraints import edge_pass
-from wc.expand.plan import SourceEpisode
 from wc.expand.slot_stage import SlotModel
 from wc.reports import environment_info, write_json_atomic
-from wc.scene.config import SceneConfig
-from wc.scene.scene import build_scene
-from wc.sim.config import SimConfig
-from wc.tasks.base import get_task
-from wc.validate.config import ValidateConfig
 
 
 def timed(fn: Any, repeats: int = 3) -> float:
@@ -61,8 +51,7 @@ def profile(model: SlotModel, plan: Any, frames: int) -> dict[str, Any]:
     fixed.reset_stats()
     out = {"network_s": timed(rollout._network)}
     out["edge_pass_s"] = timed(lambda: edge_pass(x.clone(), inv, fixed.colours, fixed.lo, fixed.hi, torch.zeros_like(x)))
-    out["push_out_s"] = timed(lambda: __import__("wc.expand.body_contacts", fromlist=["push_out"]).push_out(
-        x[:, fixed.bodies.cloth], bodies))
+    out["push_out_s"] = timed(lambda: push_out(x[:, fixed.bodies.cloth], bodies))
     out["self_contact_pairs_s"] = timed(lambda: fixed._self_contact_pairs(x))
     out["joint_s"] = timed(lambda: fixed.joint(x_prev, x, v, link, dt))
     jx, jv = fixed.joint(x_prev, x, v, link, dt)
@@ -92,21 +81,10 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--out", default="reports/slot_frame_profile.json")
     args = parser.parse_args(argv)
     params = read_params(args.params, [*args.overrides, f"expand.device={args.device}"])
-    scene_cfg, sim_cfg = load_section(params, "scene", SceneConfig), load_section(params, "sim", SimConfig)
-    task = get_task(load_section(params, "expand", ExpandConfig).task, params)
-    scene = build_scene(scene_cfg, task.objects, held=task.held())
-    plan = scripted_plan(scene, args.frames + 2)
     rows = []
-    with tempfile.TemporaryDirectory() as tmp:
-        path = Path(tmp) / "scene.zarr"
-        with simulator_store(path, scene_cfg, sim_cfg, [task], "profile", "benchmarks.slot_frame_profile"):
-            pass
-        store = TrajectoryStore(path)
+    with slot_models(params, args.model, args.frames + 2) as (plan, make):
         for slots in (int(s) for s in args.slots.split(",")):
-            params["expand"]["batch_size"] = slots
-            model = SlotModel(params, Path(args.model), scene, store, [SourceEpisode("none", 0, plan.x0, {}, plan.x0)],
-                              load_section(params, "expand", ExpandConfig), load_section(params, "validate", ValidateConfig))
-            row = {"slots": slots, **profile(model, plan, args.frames)}
+            row = {"slots": slots, **profile(make(slots), plan, args.frames)}
             rows.append(row)
             print(row, flush=True)
             write_json_atomic(args.out, {"benchmark": "slot_frame_profile", "environment": environment_info(args.device),

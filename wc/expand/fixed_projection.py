@@ -5,7 +5,8 @@ predicted frame can be captured as one CUDA graph and no step waits for the host
 
 Per step, from the previous state x_prev and the network's prediction (x, v):
 1. `iterations` passes of: edges (Gauss-Seidel by colour), the push out of the bodies (wc.expand.body_contacts), the
-   self-contact separation of vertex-triangle pairs found once at x (grouped BVH, wc.validate.cloth_bvh);
+   self-contact separation (wc.expand.self_contact) of vertex-triangle pairs found once at x (grouped BVH,
+   wc.validate.cloth_bvh);
    then `final_edge_passes` edge passes. Velocities follow the edge corrections; a pushed vertex loses its velocity
    into the surface (as the reference).
 2. The bounded step (wc.expand.fixed_untangle.BoundedStep), then the rollback of the crossings it left (`Rollback`),
@@ -26,7 +27,7 @@ from wc.expand.body_contacts import DeviceBodies, push_out
 from wc.expand.constraints import edge_colours, edge_pass
 from wc.expand.cloth_elements import ClothElements, compact, host_checks
 from wc.expand.fixed_untangle import BoundedStep, Rollback
-from wc.expand.self_contact import barycentric, ring_pairs
+from wc.expand.self_contact import ring_pairs, separate_pairs
 from wc.validate.cloth_bvh import ClothBVH
 from wc.validate.self_intersection import unique_edges
 
@@ -75,37 +76,6 @@ def ring_skip(elements: ClothElements, scene, rings: int) -> tuple[Tensor, Tenso
     flat = np.concatenate(rows).astype(np.int32) if rows else np.zeros(0, np.int32)
     device = elements.vertices.device
     return torch.as_tensor(start, device=device), torch.as_tensor(flat, device=device)
-
-
-def separate(x_prev: Tensor, x: Tensor, b: Tensor, row: Tensor, tri: Tensor, valid: Tensor, inv_mass: Tensor,
-             gap_m: float) -> Tensor:
-    """One Jacobi pass of self-contact separation (wc.expand.self_contact, static shapes): each valid pair (M,) of a
-    cloth vertex (episode b, row) and a triangle (rows tri (M, 3)) closer than gap_m to the triangle's plane, over the
-    triangle, is pushed apart along its normal to gap_m on the side the vertex was on at x_prev; x (B, N, 3) in
-    place. Returns x."""
-    n = x.shape[1]
-    p, q = x[b[:, None], tri], x[b, row]  # (M, 3, 3), (M, 3)
-    normal = torch.linalg.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
-    normal = normal / normal.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    d = ((q - p[:, 0]) * normal).sum(-1)
-    pp, qp = x_prev[b[:, None], tri], x_prev[b, row]
-    n_prev = torch.linalg.cross(pp[:, 1] - pp[:, 0], pp[:, 2] - pp[:, 0])
-    side = torch.where(((qp - pp[:, 0]) * n_prev).sum(-1) >= 0, 1.0, -1.0).to(x.dtype)
-    w = barycentric(q - d[:, None] * normal, p)
-    inside = (w >= -1e-6).all(dim=-1) & valid
-    gap = torch.nan_to_num(torch.where(inside, (gap_m - side * d).clamp_min(0.0), torch.zeros_like(d)))
-    wq, wt = inv_mass[b, row], inv_mass[b[:, None], tri] * w
-    total = (wq + (wt * w).sum(-1)).clamp_min(1e-12)
-    move = (gap * side / total)[:, None] * normal
-    active = (gap > 0).to(x.dtype)
-    flat, count = torch.zeros_like(x).view(-1, 3), x.new_zeros(x.shape[0] * n)
-    flat.index_add_(0, b * n + row, wq[:, None] * move)
-    count.index_add_(0, b * n + row, active)
-    for c in range(3):
-        flat.index_add_(0, b * n + tri[:, c], -wt[:, c, None] * move)
-        count.index_add_(0, b * n + tri[:, c], active * (wt[:, c] > 0))
-    x += (flat / count.clamp_min(1.0)[:, None]).view_as(x)
-    return x
 
 
 class FixedStepProjection:
@@ -219,7 +189,7 @@ class FixedStepProjection:
                 normal[:, cloth] = torch.where(hit[..., None], delta / delta.norm(dim=-1, keepdim=True).clamp_min(1e-12),
                                                normal[:, cloth])
             if pairs is not None:
-                separate(x_prev, out, *pairs, inv_mass, cfg.self_contact_gap_m)
+                separate_pairs(x_prev, out, *pairs, inv_mass, cfg.self_contact_gap_m)
             if before is not None and not bool((torch.nan_to_num(out - before).abs() > SETTLED_M).any()):
                 break  # the CPU stops once a pass moves nothing; CUDA runs its passes (a captured graph)
         for _ in range(cfg.final_edge_passes):

@@ -82,34 +82,43 @@ class SelfContactSeparation:
         largest remaining shortfall [m] per episode (B,) before the pass."""
         shortfall = x.new_zeros(x.shape[0])
         for b, i, tri in pairs:
-            if len(b) == 0:
-                continue
-            p, q = x[b[:, None], tri], x[b, i]  # (M, 3, 3), (M, 3)
-            normal = torch.linalg.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
-            normal = normal / normal.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-            d = ((q - p[:, 0]) * normal).sum(-1)
-            pp, qp = x_prev[b[:, None], tri], x_prev[b, i]
-            n_prev = torch.linalg.cross(pp[:, 1] - pp[:, 0], pp[:, 2] - pp[:, 0])
-            side = torch.where(((qp - pp[:, 0]) * n_prev).sum(-1) >= 0, 1.0, -1.0).to(x.dtype)
-            w = barycentric(q - d[:, None] * normal, p)  # (M, 3) of the point's projection on the plane
-            inside = (w >= -1e-6).all(dim=-1)
-            gap = (self.gap_m - side * d).clamp_min(0.0) * inside  # how far short of the gap, on the right side
-            active = gap > 0
-            if not active.any():
-                continue
-            shortfall = torch.maximum(shortfall, torch.zeros_like(shortfall).scatter_reduce(0, b, gap, "amax"))
-            b, i, tri, w, normal, gap, side = (t[active] for t in (b, i, tri, w, normal, gap, side))
-            wq, wt = inv_mass[b, i], inv_mass[b[:, None], tri] * w  # (M,), (M, 3)
-            total = (wq + (wt * w).sum(-1)).clamp_min(1e-12)
-            move = (gap * side / total)[:, None] * normal  # along the normal, towards the vertex's side
-            delta, count = torch.zeros_like(x), torch.zeros(x.shape[:2], dtype=x.dtype, device=x.device)
-            delta.index_put_((b, i), wq[:, None] * move, accumulate=True)
-            count.index_put_((b, i), (wq > 0).to(x.dtype), accumulate=True)
-            for c in range(3):
-                delta.index_put_((b, tri[:, c]), -wt[:, c, None] * move, accumulate=True)
-                count.index_put_((b, tri[:, c]), (wt[:, c] > 0).to(x.dtype), accumulate=True)
-            x += delta / count.clamp_min(1.0)[..., None]
+            if len(b):
+                gap = separate_pairs(x_prev, x, b, i, tri, torch.ones_like(b, dtype=torch.bool), inv_mass, self.gap_m)
+                shortfall = torch.maximum(shortfall, gap)
         return x, shortfall
+
+
+def separate_pairs(x_prev: Tensor, x: Tensor, b: Tensor, row: Tensor, tri: Tensor, valid: Tensor, inv_mass: Tensor,
+                   gap_m: float) -> Tensor:
+    """One Jacobi pass over vertex-triangle pairs (M,): a cloth vertex (episode b, row) closer than gap_m to the plane
+    of a triangle (rows tri (M, 3)), over the triangle, is pushed apart along its normal to gap_m on the side it was
+    on at x_prev, the move split by inverse mass and barycentric weight, corrections averaged per vertex; x (B, N, 3)
+    in place. Pairs with valid False count for nothing (static shapes, no host sync). Returns the largest shortfall
+    [m] per episode (B,) before the pass."""
+    n = x.shape[1]
+    p, q = x[b[:, None], tri], x[b, row]  # (M, 3, 3), (M, 3)
+    normal = torch.linalg.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    normal = normal / normal.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    d = ((q - p[:, 0]) * normal).sum(-1)
+    pp, qp = x_prev[b[:, None], tri], x_prev[b, row]
+    n_prev = torch.linalg.cross(pp[:, 1] - pp[:, 0], pp[:, 2] - pp[:, 0])
+    side = torch.where(((qp - pp[:, 0]) * n_prev).sum(-1) >= 0, 1.0, -1.0).to(x.dtype)
+    w = barycentric(q - d[:, None] * normal, p)  # (M, 3) of the point's projection on the plane
+    inside = (w >= -1e-6).all(dim=-1) & valid
+    gap = torch.nan_to_num(torch.where(inside, (gap_m - side * d).clamp_min(0.0), torch.zeros_like(d)))
+    shortfall = x.new_zeros(x.shape[0]).scatter_reduce(0, b, gap, "amax")
+    wq, wt = inv_mass[b, row], inv_mass[b[:, None], tri] * w  # (M,), (M, 3)
+    total = (wq + (wt * w).sum(-1)).clamp_min(1e-12)
+    move = (gap * side / total)[:, None] * normal  # along the normal, towards the vertex's side
+    active = (gap > 0).to(x.dtype)
+    flat, count = torch.zeros_like(x).view(-1, 3), x.new_zeros(x.shape[0] * n)
+    flat.index_add_(0, b * n + row, wq[:, None] * move)
+    count.index_add_(0, b * n + row, active * (wq > 0))
+    for c in range(3):
+        flat.index_add_(0, b * n + tri[:, c], -wt[:, c, None] * move)
+        count.index_add_(0, b * n + tri[:, c], active * (wt[:, c] > 0))
+    x += (flat / count.clamp_min(1.0)[:, None]).view_as(x)
+    return shortfall
 
 
 def barycentric(point: Tensor, tri: Tensor) -> Tensor:
