@@ -21,27 +21,40 @@ from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from typing import Any
 
-PR_SET_PDEATHSIG = 1  # linux/prctl.h
+PR_SET_PDEATHSIG, PR_SET_NAME = 1, 15  # linux/prctl.h
 PARENT_POLL_S = 0.5  # how often the watcher thread looks for the parent
+WATCHER_NAME = "watch-parent"  # the watcher thread's name, also its OS name on Linux (`ps -L`, /proc/PID/task/*/comm)
+
+
+def _prctl(option: int, arg: int | bytes) -> bool:
+    """Linux prctl(option, arg); False where there is none or it fails."""
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        return ctypes.CDLL(ctypes.util.find_library("c") or None, use_errno=True).prctl(option, arg, 0, 0, 0) == 0
+    except (OSError, AttributeError):
+        return False
 
 
 def _kill_on_parent_death() -> bool:
     """Ask the Linux kernel to SIGKILL this process when the thread that started it ends; False where unsupported.
     The pools are made in a stage's main thread, so that thread ends with the stage."""
-    if not sys.platform.startswith("linux"):
-        return False
-    try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or None, use_errno=True)
-        return libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0) == 0
-    except (OSError, AttributeError):
-        return False
+    return _prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
 
 
-def _watch_parent(parent_pid: int) -> None:
-    """Exit this process once its parent is gone (its parent pid changes to the reaper's)."""
+def _exit_when_orphaned(parent_pid: int) -> None:
+    _prctl(PR_SET_NAME, WATCHER_NAME.encode())  # names this thread: a worker that watches can be told from outside
     while os.getppid() == parent_pid:
         time.sleep(PARENT_POLL_S)
     os._exit(1)
+
+
+def watch_parent(parent_pid: int) -> threading.Thread:
+    """Start (and return) a daemon thread that exits this process once its parent pid is no longer `parent_pid`
+    (the parent died and init, or a subreaper, adopted it): the portable half of `end_with_parent`."""
+    thread = threading.Thread(target=_exit_when_orphaned, args=(parent_pid,), name=WATCHER_NAME, daemon=True)
+    thread.start()
+    return thread
 
 
 def end_with_parent(parent_pid: int) -> None:
@@ -50,11 +63,11 @@ def end_with_parent(parent_pid: int) -> None:
     _kill_on_parent_death()
     if os.getppid() != parent_pid:  # the parent died before the signal was armed
         os._exit(1)
-    threading.Thread(target=_watch_parent, args=(parent_pid,), name="watch-parent", daemon=True).start()
+    watch_parent(parent_pid)
 
 
 def _start_worker(parent_pid: int, initializer: Callable[..., None] | None, initargs: tuple[Any, ...]) -> None:
-    end_with_parent(parent_pid)
+    end_with_parent(parent_pid)  # a parent killed while this worker imported the stage's modules: exit now
     if initializer is not None:
         initializer(*initargs)
 
