@@ -12,6 +12,7 @@ from typing import Any
 from wc.atomic import write_atomic
 from wc.paths import SUMMARY
 from wc.reports import write_json_atomic
+from wc.smoke import REPORT_KEY
 
 
 @dataclass(frozen=True)
@@ -60,20 +61,29 @@ def _lookup(data: Any, path: str) -> Any:
     return None if isinstance(data, (dict, list)) else data
 
 
+def headline_reports(reports: Path) -> dict[str, Any]:
+    """{report file: its JSON, None where missing} for every report HEADLINES reads. A report that exists but is
+    not JSON raises ValueError naming it."""
+    loaded: dict[str, Any] = {}
+    for name in dict.fromkeys(h.report for h in HEADLINES):
+        path = reports / name
+        try:
+            loaded[name] = json.loads(path.read_text()) if path.is_file() else None
+        except json.JSONDecodeError as error:
+            raise ValueError(f"{path} is not valid JSON ({error}): rerun its stage") from error
+    return loaded
+
+
 def headline_figures(reports: Path) -> dict[str, Any]:
-    """{key: value} for every HEADLINES entry; None where its report or key is missing. A report that exists but
-    is not JSON raises ValueError naming it."""
-    figures: dict[str, Any] = {}
-    cache: dict[str, Any] = {}
-    for h in HEADLINES:
-        if h.report not in cache:
-            path = reports / h.report
-            try:
-                cache[h.report] = json.loads(path.read_text()) if path.is_file() else None
-            except json.JSONDecodeError as error:
-                raise ValueError(f"{path} is not valid JSON ({error}): rerun its stage") from error
-        figures[h.key] = _lookup(cache[h.report], h.path) if cache[h.report] is not None else None
-    return figures
+    """{key: value} for every HEADLINES entry; None where its report or key is missing."""
+    loaded = headline_reports(reports)
+    return {h.key: _lookup(loaded[h.report], h.path) for h in HEADLINES}
+
+
+def smoke_runs(reports: Path) -> dict[str, str]:
+    """{report file: its smoke-run label} for the HEADLINES reports a smoke run wrote (wc.smoke)."""
+    return {name: str(data[REPORT_KEY]) for name, data in headline_reports(reports).items()
+            if isinstance(data, dict) and data.get(REPORT_KEY)}
 
 
 def _fmt(value: Any) -> str:
@@ -106,12 +116,18 @@ def gpu_reports(reports: Path) -> list[tuple[str, str]]:
     return rows
 
 
-def results_markdown(figures: dict[str, Any], gpu: list[tuple[str, str]]) -> str:
-    """reports/RESULTS.md: the headline table of the last `dvc repro` and the list of GPU reports."""
+def results_markdown(figures: dict[str, Any], gpu: list[tuple[str, str]], smoke: dict[str, str] | None = None) -> str:
+    """reports/RESULTS.md: the headline table of the last `dvc repro` (a figure from a smoke run's report, `smoke`:
+    {report: label}, labelled so) and the list of GPU reports."""
+    smoke = smoke or {}
     lines = ["# Results", "", "Written by `python -m stages.summary` from the stage reports (`reports/*.json`) of the",
-             "last `dvc repro` (the small CPU default unless params say otherwise); do not edit by hand.", "",
-             "| figure | value | report |", "|---|---|---|"]
-    lines += [f"| {h.label} | {_fmt(figures.get(h.key))} | `{h.report}` `{h.path}` |" for h in HEADLINES]
+             "last `dvc repro` (the small CPU default unless params say otherwise); do not edit by hand."]
+    if smoke:
+        lines += ["", f"Smoke runs (params `smoke_run`: too few trials, plans or steps for their figures to mean "
+                      f"anything): {', '.join(f'`{name}`' for name in smoke)}."]
+    lines += ["", "| figure | value | what it is | report |", "|---|---|---|---|"]
+    lines += [f"| {h.label} | {_fmt(figures.get(h.key))} | {smoke.get(h.report, 'measured')} "
+              f"| `{h.report}` `{h.path}` |" for h in HEADLINES]
     lines += ["", "## GPU runs (`reports/gpu/`)", "", "Each JSON report holds its command, device and versions.", "",
               "| report | what it measured |", "|---|---|"]
     lines += [f"| `{name}` | {what} |" for name, what in gpu]
@@ -122,7 +138,7 @@ def write_summary(reports: Path, headline: Path, results: Path) -> dict[str, Any
     """Write headline.json and RESULTS.md (atomically); returns the figures."""
     figures = headline_figures(reports)
     write_json_atomic(headline, figures)
-    text = results_markdown(figures, gpu_reports(reports))
+    text = results_markdown(figures, gpu_reports(reports), smoke_runs(reports))
     write_atomic(results, lambda p: p.write_text(text))
     return figures
 

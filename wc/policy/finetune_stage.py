@@ -15,6 +15,7 @@ from wc.policy.comparison import FLAG, WARNING, expanded_equals_source
 from wc.policy.finetune import dataset_metadata, finetune
 from wc.policy.policy_config import PolicyConfig
 from wc.reports import environment_info, write_json_atomic
+from wc.smoke import smoke_label
 
 SECTIONS = ["policy"]
 
@@ -42,6 +43,7 @@ def run(params: dict[str, Any], data_root: str | Path = FINETUNE["data_root"],
         "datasets": {name: {k: r[k] for k in ("dataset", "episodes", "frames", "first_loss", "final_loss",
                                                "s_per_step_median", "train_s", "wall_s", "parameters")}
                      | {"model": str(Path(out_root) / name)} for name, r in results.items()},
+        **smoke_label(params, "finetune"),
     }
     write_json_atomic(report, result)
     return result
