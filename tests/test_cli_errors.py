@@ -4,63 +4,44 @@ simulation or training starts, so each run costs about one import of the stage."
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 
-from tests.conftest import ROOT
+from tests.stage_run import assert_one_line_error, run_stage
 from wc.cli import error_line, run_cli
 from wc.config import ParamsError
-
-
-def _stage(module: str, *args: str, traceback: bool = False) -> subprocess.CompletedProcess:
-    env = {k: v for k, v in os.environ.items() if k != "WC_TRACEBACK"} | {"HF_HUB_OFFLINE": "1"}
-    if traceback:
-        env["WC_TRACEBACK"] = "1"
-    return subprocess.run([sys.executable, "-m", f"stages.{module}", *args], cwd=ROOT, env=env, capture_output=True,
-                          text=True, timeout=300)
-
-
-def _assert_one_line(done: subprocess.CompletedProcess, stage: str, *words: str) -> None:
-    assert done.returncode == 2, done.stderr[-3000:]
-    assert "Traceback" not in done.stderr
-    lines = done.stderr.splitlines()
-    assert len(lines) == 1 and lines[0].startswith(f"{stage}: error: "), done.stderr[-3000:]
-    assert all(w in lines[0] for w in words), lines[0]
 
 
 @pytest.mark.slow
 def test_validate_missing_input(tmp_path: Path) -> None:
     out = tmp_path / "out.zarr"
-    done = _stage("validate", "--raw", str(tmp_path / "absent.zarr"), "--out", str(out), "--report",
-                  str(tmp_path / "r.json"))
-    _assert_one_line(done, "validate", "absent.zarr", "not found", "simulate stage first")
+    done = run_stage("validate", "--raw", str(tmp_path / "absent.zarr"), "--out", str(out), "--report",
+                     str(tmp_path / "r.json"))
+    assert_one_line_error(done, "validate", "absent.zarr", "not found", "simulate stage first")
     assert not out.exists()
 
 
 @pytest.mark.slow
 def test_train_bad_override(tmp_path: Path) -> None:
-    done = _stage("train", "--set", "train.base.steps=many", "--store", str(tmp_path / "absent.zarr"), "--out",
-                  str(tmp_path / "m"), "--report", str(tmp_path / "r.json"))
-    _assert_one_line(done, "train", "train.base.steps", "integer", "'many'")
+    done = run_stage("train", "--set", "train.base.steps=many", "--store", str(tmp_path / "absent.zarr"), "--out",
+                     str(tmp_path / "m"), "--report", str(tmp_path / "r.json"))
+    assert_one_line_error(done, "train", "train.base.steps", "integer", "'many'")
 
 
 @pytest.mark.slow
 def test_params_file_not_yaml(tmp_path: Path) -> None:
     params = tmp_path / "params.yaml"
     params.write_text("scene: [\n  a\nvalidate: 1\n")
-    done = _stage("validate", "--params", str(params), "--raw", str(tmp_path / "absent.zarr"))
-    _assert_one_line(done, "validate", str(params), "not valid YAML")
+    done = run_stage("validate", "--params", str(params), "--raw", str(tmp_path / "absent.zarr"))
+    assert_one_line_error(done, "validate", str(params), "not valid YAML")
 
 
 @pytest.mark.slow
 def test_params_file_missing_and_traceback_on_request(tmp_path: Path) -> None:
     args = ("--params", str(tmp_path / "absent.yaml"), "--store", str(tmp_path / "absent.zarr"))
-    _assert_one_line(_stage("train", *args), "train", "params file not found", "absent.yaml")
-    done = _stage("train", *args, traceback=True)
+    assert_one_line_error(run_stage("train", *args), "train", "params file not found", "absent.yaml")
+    done = run_stage("train", *args, traceback=True)
     assert done.returncode == 1
     assert "Traceback (most recent call last)" in done.stderr and "ParamsError: params file not found" in done.stderr
 

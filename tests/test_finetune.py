@@ -19,6 +19,7 @@ import pytest
 import torch
 from lerobot.datasets import LeRobotDataset
 
+from tests.stage_run import assert_one_line_error, run_stage
 from wc.policy.finetune_stage import run, stage_params
 from wc.config import ParamsError, load_section
 from wc.policy.comparison import FLAG
@@ -189,6 +190,21 @@ def test_stock_lerobot_train_cli_runs_offline(data_root: Path, tmp_path: Path) -
     policy, preprocessor, postprocessor = load_policy(model)
     actions = _actions(policy, preprocessor, postprocessor, _batch(data_root / "source", 2))
     assert actions.shape == (2, 4, 7) and torch.isfinite(actions).all()
+
+
+@pytest.mark.slow
+def test_stage_names_a_corrupt_info_json(data_root: Path, tmp_path: Path) -> None:
+    """`python -m stages.finetune` with the expanded dataset's meta/info.json cut short by a bad edit: status 2 and
+    one line naming that file and where its JSON breaks, before the source dataset trains."""
+    root = tmp_path / "lerobot"
+    shutil.copytree(data_root, root)
+    info = root / "expanded" / "meta" / "info.json"
+    info.write_text("{\n  codebase_version: 3\n}\n")  # an unquoted key
+    out = tmp_path / "policy"
+    done = run_stage("finetune", "--data-root", str(root), "--out-root", str(out), "--report", str(tmp_path / "r.json"))
+    assert_one_line_error(done, "finetune", str(info), "not valid JSON",
+                          "Expecting property name enclosed in double quotes", "line 2 column 3", progress=True)
+    assert not out.exists()
 
 
 def test_policy_fragment_replaces_the_section(tmp_path: Path) -> None:

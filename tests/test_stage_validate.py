@@ -15,6 +15,7 @@ import pytest
 import wc.data.store as store_module
 from stages.validate import main
 from tests.conftest import load_params
+from tests.stage_run import assert_one_line_error, run_stage
 from wc.config import ParamsError, load_section, params_hash
 from wc.data.store import TrajectoryStore, TrajectoryWriter
 from wc.scene.config import SceneConfig
@@ -287,6 +288,21 @@ def test_corrupt_raw_store(raw, params, tmp_path):
     with pytest.raises(ValueError, match="not a worldcontact trajectory store"):
         validate(params, broken, tmp_path / "t.zarr", tmp_path / "r.json")
     assert not (tmp_path / "t.zarr").exists()
+
+
+@pytest.mark.slow
+def test_stage_names_a_chunk_overwritten_with_garbage(raw, tmp_path):
+    """`python -m stages.validate` on a store whose chunk of frames 4-7 of ep_000001's x holds random bytes: status
+    2 and one line naming the store, the episode, the array and the chunk (zstd's own error names none)."""
+    broken = tmp_path / "raw.zarr"
+    shutil.copytree(raw, broken)
+    chunk = broken / "episodes" / "ep_000001" / "x" / "c" / "1" / "0" / "0"
+    chunk.write_bytes(np.random.default_rng(0).bytes(chunk.stat().st_size))
+    out = tmp_path / "t.zarr"
+    done = run_stage("validate", "--raw", str(broken), "--out", str(out), "--report", str(tmp_path / "r.json"))
+    assert_one_line_error(done, "validate", str(broken), "corrupt episode ep_000001", "array 'x'", "chunk c/1/0/0",
+                          "frames 4-7", "does not decode", progress=True)
+    assert not out.exists()
 
 
 def test_scene_params_changed_since_simulate(raw, params, tmp_path):

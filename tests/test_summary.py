@@ -8,7 +8,9 @@ import pytest
 import yaml
 
 from stages.summary import main
-from tests.conftest import ROOT
+from tests.conftest import ROOT, load_params
+from wc.config import ParamsError
+from wc.smoke import smoke_label
 from wc.summary import HEADLINES, headline_figures, write_summary
 
 
@@ -67,3 +69,24 @@ def test_the_metrics_files_hold_no_wall_clock_rate_and_the_summary_reads_every_r
     assert {f"reports/{h.report}" for h in HEADLINES} <= deps
     outs = {next(iter(o)) if isinstance(o, dict) else o for s in stages.values() for o in s.get("do", s).get("outs", [])}
     assert {f"reports/{h.report}" for h in HEADLINES} <= outs  # each is some stage's output
+
+
+def test_figures_of_a_smoke_run_are_labelled_so(tmp_path):
+    reports = _reports(tmp_path)
+    (reports / "policy.json").write_text(json.dumps({"success_rate": {"source": 0.0, "expanded": 1.0},
+                                                     "smoke_run": "smoke run (CPU default): not a result"}))
+    write_summary(reports, reports / "headline.json", reports / "RESULTS.md")
+    rows = {line.split(" | ")[0].strip("| "): line for line in (reports / "RESULTS.md").read_text().splitlines()}
+    assert "| 1 | smoke run (CPU default): not a result |" in rows["policy success, expanded data"]
+    assert "| 31 | measured |" in rows["generated episodes accepted"]
+    assert "Smoke runs" in (reports / "RESULTS.md").read_text()
+    assert json.loads((reports / "headline.json").read_text())["policy.success_rate_expanded"] == 1.0
+
+
+def test_the_cpu_default_labels_its_smoke_runs_and_the_gpu_params_do_not():
+    cpu, gpu = load_params(), load_params(file="params/gpu.yaml")
+    label = {"smoke_run": "smoke run (CPU default): not a result"}
+    assert [smoke_label(cpu, s) for s in ("policy_eval", "teacher_check", "train", "expand")] == [label, label, {}, {}]
+    assert smoke_label(gpu, "policy_eval") == {} and smoke_label(gpu, "train_baselines") != {}
+    with pytest.raises(ParamsError, match="smoke_run: stages: unknown stage 'policy'"):
+        smoke_label(load_params("smoke_run.stages=[policy]"), "policy_eval")

@@ -67,18 +67,24 @@ def _fmt(value: Any) -> str:
 
 
 def results_markdown(rows: Sequence[tuple[str, str, str]], figures: dict[str, Any], labels: Sequence[Any],
-                     policy: dict[str, Any] | None) -> str:
+                     policy: dict[str, Any] | None, smoke: dict[str, str] | None = None) -> str:
     """The page: featured GPU headlines, the last repro's `figures` (one row per `labels` entry: a Headline with
-    key, label, report, path) under its smoke label, then every GPU report (`rows` from `gpu_headlines`)."""
+    key, label, report, path) under its smoke label, each marked with its report's smoke-run label (`smoke`:
+    {report file: label}, params `smoke_run`) or `measured`, then every GPU report (`rows` from `gpu_headlines`)."""
+    smoke = smoke or {}
     by_name = {name: (kind, line) for name, kind, line in rows}
     lines = ["# Results", "", "Written by `python -m stages.summary` from the reports' JSON; do not edit by hand.", "",
              "## Headline figures (GPU runs, `reports/gpu/`)", ""]
     for f in FEATURED:
         if f.report in by_name:
             lines.append(f"- **{f.title}**: {by_name[f.report][1]}. [Write-up]({f.write_up}), `gpu/{f.report}`.")
-    lines += ["", "## The last `dvc repro`", "", smoke_label(policy), "",
-              "| figure | value | report |", "|---|---|---|"]
-    lines += [f"| {h.label} | {_fmt(figures.get(h.key))} | `{h.report}` `{h.path}` |" for h in labels]
+    lines += ["", "## The last `dvc repro`", "", smoke_label(policy)]
+    if smoke:
+        lines += ["", "Smoke runs (params `smoke_run`: too few trials, plans or steps for their figures to mean "
+                      f"anything): {', '.join(f'`{name}`' for name in smoke)}."]
+    lines += ["", "| figure | value | what it is | report |", "|---|---|---|---|"]
+    lines += [f"| {h.label} | {_fmt(figures.get(h.key))} | {smoke.get(h.report, 'measured')} | `{h.report}` "
+              f"`{h.path}` |" for h in labels]
     lines += ["", "## Every GPU report (`reports/gpu/`)", "",
               "Each JSON report holds its command or params, device and versions; its kind declares the fields of "
               "its headline (`wc/report_kinds.py`).", "", "| report | kind | headline |", "|---|---|---|"]

@@ -13,6 +13,7 @@ from wc.atomic import write_atomic
 from wc.paths import SUMMARY
 from wc.reports import write_json_atomic
 from wc.results_page import gpu_headlines, read_policy_report, results_markdown
+from wc.smoke import REPORT_KEY
 
 
 @dataclass(frozen=True)
@@ -66,20 +67,29 @@ def _lookup(data: Any, path: str) -> Any:
     return None if isinstance(data, (dict, list)) else data
 
 
+def headline_reports(reports: Path) -> dict[str, Any]:
+    """{report file: its JSON, None where missing} for every report HEADLINES reads. A report that exists but is
+    not JSON raises ValueError naming it."""
+    loaded: dict[str, Any] = {}
+    for name in dict.fromkeys(h.report for h in HEADLINES):
+        path = reports / name
+        try:
+            loaded[name] = json.loads(path.read_text()) if path.is_file() else None
+        except json.JSONDecodeError as error:
+            raise ValueError(f"{path} is not valid JSON ({error}): rerun its stage") from error
+    return loaded
+
+
 def headline_figures(reports: Path) -> dict[str, Any]:
-    """{key: value} for every HEADLINES entry; None where its report or key is missing. A report that exists but
-    is not JSON raises ValueError naming it."""
-    figures: dict[str, Any] = {}
-    cache: dict[str, Any] = {}
-    for h in HEADLINES:
-        if h.report not in cache:
-            path = reports / h.report
-            try:
-                cache[h.report] = json.loads(path.read_text()) if path.is_file() else None
-            except json.JSONDecodeError as error:
-                raise ValueError(f"{path} is not valid JSON ({error}): rerun its stage") from error
-        figures[h.key] = _lookup(cache[h.report], h.path) if cache[h.report] is not None else None
-    return figures
+    """{key: value} for every HEADLINES entry; None where its report or key is missing."""
+    loaded = headline_reports(reports)
+    return {h.key: _lookup(loaded[h.report], h.path) for h in HEADLINES}
+
+
+def smoke_runs(reports: Path) -> dict[str, str]:
+    """{report file: its smoke-run label} for the HEADLINES reports a smoke run wrote (wc.smoke)."""
+    return {name: str(data[REPORT_KEY]) for name, data in headline_reports(reports).items()
+            if isinstance(data, dict) and data.get(REPORT_KEY)}
 
 
 def write_summary(reports: Path, headline: Path, results: Path) -> dict[str, Any]:
@@ -87,7 +97,8 @@ def write_summary(reports: Path, headline: Path, results: Path) -> dict[str, Any
     the figures. A GPU report of no declared kind, or without one of its kind's headline fields, is a HeadlineError (a
     ValueError) and nothing is written."""
     figures = headline_figures(reports)
-    text = results_markdown(gpu_headlines(reports), figures, HEADLINES, read_policy_report(reports))
+    text = results_markdown(gpu_headlines(reports), figures, HEADLINES, read_policy_report(reports),
+                            smoke_runs(reports))
     write_json_atomic(headline, {h.key: figures[h.key] for h in HEADLINES if h.metric})
     write_atomic(results, lambda p: p.write_text(text))
     return figures

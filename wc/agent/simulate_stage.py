@@ -5,11 +5,10 @@ failure memory.
 
 from __future__ import annotations
 
-import multiprocessing
 import time
 from collections import deque
 from collections.abc import Iterator
-from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from concurrent.futures import FIRST_COMPLETED, Future, wait
 from contextlib import closing
 from pathlib import Path
 from typing import Any
@@ -31,6 +30,7 @@ from wc.sim.config import SimConfig
 from wc.sim.newton_sim import NewtonSimulator
 from wc.tasks.base import get_task
 from wc.validate import ValidateConfig
+from wc.worker_pool import spawn_pool
 
 SECTIONS = ["scene", "sim", "tasks", "agent", "validate"]
 
@@ -69,9 +69,8 @@ def task_results(params: dict[str, Any], keys: dict[str, str], memory: FailureMe
                 err.add_note(f"while simulating task {name!r}")
                 raise
         return
-    # spawn, not fork: warp/Newton must not be forked once initialised; kernels come from ~/.cache/warp
-    with ProcessPoolExecutor(min(workers, len(names)), mp_context=multiprocessing.get_context("spawn"),
-                             initializer=init_worker, initargs=(torch.get_num_threads(),)) as pool:
+    # spawned workers that end with this process; kernels come from ~/.cache/warp
+    with spawn_pool(min(workers, len(names)), init_worker, (torch.get_num_threads(),)) as pool:
         waiting = deque(range(len(names)))  # task order: their costs are not known in advance
         running: dict[Future[TaskResult], int] = {}
         finished: dict[int, TaskResult] = {}

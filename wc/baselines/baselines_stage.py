@@ -14,6 +14,7 @@ from wc.baselines.train import train_baseline
 from wc.config import ParamsError, load_section, params_hash
 from wc.paths import TRAIN_BASELINES
 from wc.reports import environment_info, write_json_atomic
+from wc.smoke import smoke_label
 from wc.train.config import TrainConfig
 
 SECTIONS = ["baselines", "train"]
@@ -35,7 +36,7 @@ def run(params: dict[str, Any], store: str | Path = TRAIN_BASELINES["store"], ou
     results = {name: train_baseline(name, store, Path(out) / name, cfg, train_cfg, {"params_hash": digest})
                for name in cfg.names}
     result = {"baselines": results, "wall_s": time.perf_counter() - start, "params_hash": digest,
-              "environment": environment_info(cfg.device), "models": str(out)}
+              "environment": environment_info(cfg.device), "models": str(out), **smoke_label(params, "train_baselines")}
     write_json_atomic(report, result)
     return result
 

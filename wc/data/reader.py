@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 import zarr
 
+from wc.data.chunks import read_rows
 from wc.data.schema import (EPISODE_ARRAYS, ROOT_ATTRS, SCHEMA, SCHEMA_PREFIX, ObjectMesh, PrescribedSamples,
                             episode_sort_key)
 
@@ -192,7 +193,7 @@ class TrajectoryStore:
         for k in fields:
             if k not in arrs:
                 raise KeyError(f"unknown episode array {k!r}; choose from {EPISODE_ARRAYS}")
-            a = np.asarray(arrs[k][sl])
+            a = read_rows(arrs[k], sl.start, sl.stop, f"{self.path}: corrupt episode {eid}, array '{k}'", "frames")
             if not np.isfinite(a).all():  # written finite, so NaN = fill value of a missing chunk
                 raise ValueError(f"{self.path}: corrupt episode {eid}: array '{k}' has non-finite values "
                                  f"in frames [{sl.start}, {sl.stop}) (missing chunk?)")

@@ -14,7 +14,7 @@ import logging
 import os
 from collections import OrderedDict, deque
 from collections.abc import Callable, Collection, Hashable, Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass
 from typing import Any
 
@@ -22,6 +22,7 @@ import torch
 
 from wc.config import load_section
 from wc.distributed.config import RayConfig, check_executor
+from wc.reaper import reaping_descendants
 
 log = logging.getLogger(__name__)
 KEPT_WORKERS = 2  # workers one Ray worker process keeps (a simulate worker holds a task's Newton world)
@@ -171,8 +172,9 @@ class RayExecutor:
 @contextmanager
 def open_executor(name: str, params: dict[str, Any], gpu: bool) -> Iterator[LocalExecutor | RayExecutor]:
     """The executor a stage's `executor` value names. ray: the params' `ray` section; connected to ray.address, else
-    $RAY_ADDRESS, else a new Ray instance on this machine (shut down on exit); a Ray this process already
-    initialised (a test's, a notebook's) is used as it is. `gpu`: the units run on a CUDA device."""
+    $RAY_ADDRESS, else a new Ray instance on this machine (shut down on exit, and its processes killed if this
+    process is: wc.reaper); a Ray this process already initialised (a test's, a notebook's) is used as it is.
+    `gpu`: the units run on a CUDA device."""
     check_executor(name)
     if name == "local":
         yield LocalExecutor()
@@ -182,13 +184,14 @@ def open_executor(name: str, params: dict[str, Any], gpu: bool) -> Iterator[Loca
 
     address = cfg.address or os.environ.get("RAY_ADDRESS") or None
     started = not ray.is_initialized()
-    if started:
-        ray.init(address=address, **({} if address else {"include_dashboard": False}))
-    try:
-        yield RayExecutor(cfg, gpu, address or ("a new local Ray instance" if started else "this process's Ray"))
-    finally:
+    with reaping_descendants() if started and not address else nullcontext():  # a local instance dies with the stage
         if started:
-            ray.shutdown()
+            ray.init(address=address, **({} if address else {"include_dashboard": False}))
+        try:
+            yield RayExecutor(cfg, gpu, address or ("a new local Ray instance" if started else "this process's Ray"))
+        finally:
+            if started:
+                ray.shutdown()
 
 
 @contextmanager

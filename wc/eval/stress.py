@@ -44,6 +44,7 @@ from wc.paths import STRESS
 from wc.reports import environment_info, pyplot, save_figure_atomic, write_csv_atomic, write_json_atomic
 from wc.scene.config import SceneConfig
 from wc.sim.config import SimConfig
+from wc.smoke import smoke_label
 from wc.train.config import TrainConfig
 from wc.train.data import episode_phases
 
@@ -297,6 +298,7 @@ def stress(params: dict[str, Any], store: str | Path = STRESS["store"], csv: str
         "wall_s": {"total": time.perf_counter() - started, "ground_truth": simulated - started,
                    "rollouts": rolled - simulated, "video": time.perf_counter() - rolled},
         "environment": environment_info(str(device)),
+        **smoke_label(params, "stress"),
     }
     write_json_atomic(report, result)
     return result

@@ -16,10 +16,8 @@ The store is reused when it exists and carries the params hash of everything the
 from __future__ import annotations
 
 import copy
-import multiprocessing
 import time
 from collections.abc import Iterator
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -41,6 +39,7 @@ from wc.sim.config import SimConfig
 from wc.sim.newton_sim import NewtonSimulator
 from wc.tasks.base import UNREACHABLE, get_task
 from wc.validate import ValidateConfig
+from wc.worker_pool import spawn_pool
 
 TRUTH_SECTIONS = ["stress_truth", "scene", "sim", "tasks", "validate"]
 INSANE = ("non_finite", "blow_up")  # first failures that make an episode unusable as ground truth
@@ -140,9 +139,7 @@ def case_results(params: dict[str, Any], cfg: StressConfig) -> Iterator[dict[str
                 yield simulate_case(params, cfg, name, index)
                 bar.update()
             return
-        # spawn, not fork: warp/Newton must not be forked once initialised (as in the simulate stage)
-        with ProcessPoolExecutor(min(cfg.workers, len(names)), mp_context=multiprocessing.get_context("spawn"),
-                                 initializer=init_worker, initargs=(torch.get_num_threads(),)) as pool:
+        with spawn_pool(min(cfg.workers, len(names)), init_worker, (torch.get_num_threads(),)) as pool:
             futures = [pool.submit(simulate_case, params, cfg, name, i) for i, name in enumerate(names)]
             for future in futures:
                 yield future.result()

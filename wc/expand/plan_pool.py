@@ -5,8 +5,7 @@ Results come back as futures, in whatever order they finish; the caller consumes
 
 from __future__ import annotations
 
-import multiprocessing
-from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures import Future
 from dataclasses import dataclass
 from typing import Any
 
@@ -19,6 +18,7 @@ from wc.model.prescribed_inputs import KinematicInputs
 from wc.scene.scene import Scene
 from wc.tasks.base import EpisodeSpec, InfeasibleEpisode, get_task
 from wc.validate.config import ValidateConfig
+from wc.worker_pool import spawn_pool
 
 
 @dataclass(frozen=True)
@@ -67,9 +67,9 @@ class PlanPool:
                  dt: float, validate_cfg: ValidateConfig, workers: int) -> None:
         args = (params, scene, sources, cfg, dt, validate_cfg)
         self._local = _Planner(*args) if workers == 0 else None
-        # spawned: a forked worker cannot use autograd once the parent has (the IK does), nor CUDA
-        self._pool = None if workers == 0 else ProcessPoolExecutor(
-            workers, mp_context=multiprocessing.get_context("spawn"), initializer=_init_worker, initargs=args)
+        # spawned (a forked worker cannot use autograd once the parent has, as the IK does, nor CUDA), ending with
+        # the stage even when it is killed
+        self._pool = None if workers == 0 else spawn_pool(workers, initializer=_init_worker, initargs=args)
 
     def submit(self, spec: EpisodeSpec, source: int) -> Future[PlanResult]:
         if self._pool is not None:

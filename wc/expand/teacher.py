@@ -33,6 +33,7 @@ from wc.paths import TEACHER_CHECK
 from wc.reports import environment_info, write_json_atomic
 from wc.scene.config import SceneConfig
 from wc.sim.config import SimConfig
+from wc.smoke import smoke_label
 from wc.tasks.base import EpisodeSpec, get_task
 from wc.validate.config import ValidateConfig
 
@@ -122,7 +123,7 @@ def run(params: dict[str, Any], store: str | Path = TEACHER_CHECK["store"],
         report: str | Path = TEACHER_CHECK["report"], rejected: str | Path | None = TEACHER_CHECK["rejected"],
         limit: int | None = None, newton_perturb_m: list[float] | None = None) -> dict[str, Any]:
     """`teacher_check` of the stores `store` and `rejected` (None: accepted plans only), written to `report`."""
-    result = teacher_check(params, store, limit, rejected, newton_perturb_m)
+    result = teacher_check(params, store, limit, rejected, newton_perturb_m) | smoke_label(params, "teacher_check")
     write_json_atomic(report, result)
     return result
 

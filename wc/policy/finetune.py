@@ -51,7 +51,11 @@ def dataset_metadata(root: str | Path, cfg: PolicyConfig) -> LeRobotDatasetMetad
     root = Path(root)
     if not (root / "meta" / "info.json").is_file():
         raise FileNotFoundError(f"finetune: no LeRobot dataset at {root} (run the dataset stage first)")
-    meta = LeRobotDatasetMetadata(f"local/{root.name}", root=root)
+    try:
+        meta = LeRobotDatasetMetadata(f"local/{root.name}", root=root)
+    except json.JSONDecodeError as err:  # lerobot's message names no file
+        raise ValueError(f"finetune: {invalid_json(root / 'meta', err)} (rebuild the dataset with the dataset "
+                         "stage)") from err
     needed = [camera_feature(c) for c in cfg.cameras] + [OBS_STATE, ACTION]
     missing = [k for k in needed if k not in meta.features]
     if missing:
@@ -63,6 +67,17 @@ def dataset_metadata(root: str | Path, cfg: PolicyConfig) -> LeRobotDatasetMetad
         raise ValueError(f"finetune: dataset {root} has {meta.total_frames} frames, fewer than policy.batch_size "
                          f"{cfg.batch_size}")
     return meta
+
+
+def invalid_json(folder: Path, err: json.JSONDecodeError) -> str:
+    """Which JSON file under `folder` does not parse, and where: '<file> is not valid JSON: <msg>: line L column C'
+    (the first that fails; `err`, lerobot's error, when each parses on its own)."""
+    for path in sorted(folder.rglob("*.json")):
+        try:
+            json.loads(path.read_text())
+        except (json.JSONDecodeError, UnicodeDecodeError) as bad:
+            return f"{path} is not valid JSON: {bad}"
+    return f"a JSON file under {folder} is not valid JSON: {err}"
 
 
 def camera_feature(camera: str) -> str:

@@ -12,9 +12,10 @@ from typing import Any
 from wc.config import ParamsError, load_section, params_hash, read_params
 from wc.paths import FINETUNE
 from wc.policy.comparison import FLAG, WARNING, expanded_equals_source
-from wc.policy.finetune import finetune
+from wc.policy.finetune import dataset_metadata, finetune
 from wc.policy.policy_config import PolicyConfig
 from wc.reports import environment_info, write_json_atomic
+from wc.smoke import smoke_label
 
 SECTIONS = ["policy"]
 
@@ -27,6 +28,8 @@ def run(params: dict[str, Any], data_root: str | Path = FINETUNE["data_root"],
     missing = [str(r) for r in roots.values() if not (r / "meta" / "info.json").is_file()]
     if missing:  # before any training: a missing second dataset should not cost the first one's run
         raise FileNotFoundError(f"finetune: no LeRobot dataset at {', '.join(missing)} (run the dataset stage first)")
+    for root in roots.values():  # every dataset readable before any training
+        dataset_metadata(root, cfg)
     start = time.perf_counter()
     digest = params_hash(params, SECTIONS)
     results = {name: finetune(root, Path(out_root) / name, cfg, meta={"params_hash": digest})
@@ -40,6 +43,7 @@ def run(params: dict[str, Any], data_root: str | Path = FINETUNE["data_root"],
         "datasets": {name: {k: r[k] for k in ("dataset", "episodes", "frames", "first_loss", "final_loss",
                                                "s_per_step_median", "train_s", "wall_s", "parameters")}
                      | {"model": str(Path(out_root) / name)} for name, r in results.items()},
+        **smoke_label(params, "finetune"),
     }
     write_json_atomic(report, result)
     return result

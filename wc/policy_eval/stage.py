@@ -33,6 +33,7 @@ from wc.policy_eval.plots import plot_success_rates, write_success_metrics, writ
 from wc.policy_eval.success import wilson_interval
 from wc.policy_eval.trials import TrialResult, by_policy, run_trials, trial_jobs
 from wc.reports import environment_info, replace_dir, write_json_atomic
+from wc.smoke import smoke_label
 
 SECTIONS = ["policy_eval", "policy", "scene", "sim", "render", "tasks", "dataset"]
 
@@ -115,6 +116,7 @@ def run(params: dict[str, Any], models_root: str | Path = POLICY_EVAL["models_ro
         "policies": policies, "videos": str(videos_dir), "table": str(table), "metrics": str(metrics),
         "plot": str(plot),
         "params_hash": params_hash(params, SECTIONS), "device": device, "timing": timing,
+        **smoke_label(params, "policy_eval"),
     }
     write_json_atomic(report, result)
     return result

@@ -2,18 +2,17 @@
 
 A trial depends only on its policy and seed (the env resets the physics, the actor its queue, torch its seed),
 so trials can run in any process and order; the results come back sorted as the jobs were listed. Each worker
-builds one env and loads each policy once, on its first trial of that policy. Workers start with `spawn` (CUDA
-and warp are not fork-safe). On one GPU the processes time-slice it: 12 workers on an H100 ran 150 trials only
+builds one env and loads each policy once, on its first trial of that policy. Workers are spawned and end with the
+stage (wc.worker_pool). On one GPU the processes time-slice it: 12 workers on an H100 ran 150 trials only
 ~1.6x as fast as one process (reports/gpu/policy_h100_three_arms.md), so a few workers get most of the gain.
 """
 
 from __future__ import annotations
 
-import multiprocessing
 import os
 import time
 from collections.abc import Callable, Iterable
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import as_completed
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -24,6 +23,7 @@ from wc.policy.finetune import load_policy
 from wc.policy_eval.closed_loop import PolicyActor, run_episode
 from wc.policy_eval.env import WorldContactLiftEnv
 from wc.policy_eval.videos import write_mp4
+from wc.worker_pool import spawn_pool
 
 
 @dataclass(frozen=True)
@@ -106,8 +106,7 @@ def run_trials(params: dict[str, Any], jobs: list[TrialJob], videos_dir: Path, w
             collect(i, runner(job))
         return [done[i] for i in range(len(jobs))]
     threads = max(1, (os.cpu_count() or 1) // workers)
-    with ProcessPoolExecutor(min(workers, len(jobs)), mp_context=multiprocessing.get_context("spawn"),
-                             initializer=_start_worker, initargs=(params, videos_dir, threads)) as pool:
+    with spawn_pool(min(workers, len(jobs)), _start_worker, (params, videos_dir, threads)) as pool:
         futures = {pool.submit(_run_job, job): i for i, job in enumerate(jobs)}
         for future in as_completed(futures):
             collect(futures[future], future.result())

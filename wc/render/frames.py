@@ -24,6 +24,7 @@ import numpy as np
 import zarr
 
 from wc.atomic import remove_stale_temporaries
+from wc.data.chunks import read_rows
 from wc.reports import replace_dir
 
 RENDERED_SCHEMA = "worldcontact-rendered/1"
@@ -114,7 +115,9 @@ class RenderedStore:
         """(T', H, W, 3) uint8 frames [start, stop) of one camera."""
         if camera not in self.cameras:
             raise KeyError(f"{self.path}: no camera {camera!r}; cameras: {self.cameras}")
-        return np.asarray(self._episode(episode_id)[camera][start:stop])
+        array = self._episode(episode_id)[camera]
+        stop = array.shape[0] if stop is None else stop
+        return read_rows(array, start, stop, f"{self.path}: corrupt episode {episode_id}, camera '{camera}'", "frames")
 
     def _episode(self, episode_id: str) -> zarr.Group:
         try:
