@@ -79,7 +79,7 @@ def test_both_engines_reject_the_same_plans_for_the_same_check(inputs, tmp_path,
         r, _, rejected = _run(inputs, tmp_path, engine, engine=engine, batch_size=2, target_trajectories=4,
                               max_attempts=2, seed=2, validate={**failing, "self_intersection_every": 1})
         verdicts[engine] = sorted((e["seed"], e["reason"]) for e in r["rejected_episodes"])
-        assert r["accepted"] == 0 and r["rejections"][check] == r["generated"] > 0
+        assert r["accepted"] == 0 and r["rejections"][check] == r["generated"] > 0, (r["rejections"], r["rejected_episodes"])
         if engine == "slots":  # an episode stops at its first failing frame: its slot takes the next plan
             for eid, logged in zip(rejected.episode_ids, r["rejected_episodes"]):
                 frames = len(rejected.read_episode(eid, ("x",))["x"])

@@ -62,8 +62,7 @@ def triangle_distance(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3) -> float:
 
 @wp.func
 def segment_crosses_triangle(p: wp.vec3, q: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3) -> bool:
-    """The segment p-q passes through the triangle abc (Moeller-Trumbore). A segment through the triangle's edges
-    counts (a surface through a mesh edge crosses the mesh there); one that ends on the plane or lies in it does not."""
+    """The segment p-q meets the triangle abc (Moeller-Trumbore; touching, at a boundary or in the plane, does not count)."""
     e1 = b - a
     e2 = c - a
     d = q - p
@@ -77,7 +76,7 @@ def segment_crosses_triangle(p: wp.vec3, q: wp.vec3, a: wp.vec3, b: wp.vec3, c: 
     r = wp.cross(s, e1)
     w = inv * wp.dot(d, r)
     t = inv * wp.dot(e2, r)
-    return u >= 0.0 and w >= 0.0 and u + w <= 1.0 and t > 0.0 and t < 1.0
+    return u > 0.0 and w > 0.0 and u + w < 1.0 and t > 0.0 and t < 1.0
 
 
 @wp.kernel
