@@ -23,6 +23,7 @@ from wc.data.store import TrajectoryStore
 from wc.policy.comparison import FLAG
 from wc.policy.dataset import PROVENANCE_FILE, fps_of, right_arm_state_action, select_episodes
 from wc.policy.dataset_stage import build_datasets
+from wc.policy.video_frame_check import missing_video_frames
 from wc.render.frames import RenderedStore, RenderedWriter
 from tests.conftest import load_params
 from tests.synthetic_store import write_synthetic_store
@@ -223,10 +224,9 @@ def test_a_control_arm_takes_its_own_name(tmp_path: Path, params: dict[str, Any]
 
 
 @pytest.mark.slow
-def test_source_only_from_the_cli_h264_without_streaming(tmp_path: Path, inputs: dict[str, Path]) -> None:
+def test_source_only_from_the_cli_h264(tmp_path: Path, inputs: dict[str, Path]) -> None:
     main(["--set", "dataset.include_expanded=false", "--set", "dataset.task=carry",
           "--set", "dataset.splits=[test]", "--set", "dataset.video_codec=h264",
-          "--set", "dataset.streaming_encoding=false",
           "--source-trajectories", str(inputs["source_trajectories"]), "--source-frames", str(inputs["source_frames"]),
           "--expanded-trajectories", str(tmp_path / "absent.zarr"), "--out", str(tmp_path / "lerobot"),
           "--report", str(tmp_path / "r.json")])
@@ -245,6 +245,40 @@ def test_frame_count_mismatch_is_an_error(tmp_path: Path, inputs: dict[str, Path
     short = write_frames(tmp_path / "short.zarr", src, frames={src.episode_ids[0]: T - 1})
     with pytest.raises(ValueError, match=f"{T} frames .* but {T - 1} rendered"):
         select_episodes("source", src, RenderedStore(short), "carry")
+
+
+def _drop_last_frame(video: Path) -> None:
+    """Re-encode `video` without its last frame (what lerobot's streaming encoder did when its queue was full)."""
+    import av
+
+    with av.open(str(video)) as src:
+        frames = [f.to_ndarray(format="rgb24") for f in src.decode(video=0)]
+        rate = src.streams.video[0].average_rate
+    tmp = video.with_suffix(".short.mp4")
+    with av.open(str(tmp), "w") as dst:
+        stream = dst.add_stream("h264", rate)
+        stream.width, stream.height, stream.pix_fmt = frames[0].shape[1], frames[0].shape[0], "yuv420p"
+        for i, image in enumerate(frames[:-1]):
+            frame = av.VideoFrame.from_ndarray(image, format="rgb24")
+            frame.pts = i
+            dst.mux(stream.encode(frame))
+        dst.mux(stream.encode())
+    tmp.replace(video)
+
+
+@pytest.mark.slow
+def test_a_video_that_lost_a_frame_is_named(built: dict[str, Any], tmp_path: Path) -> None:
+    import shutil
+
+    root = tmp_path / "source"
+    shutil.copytree(built["out"] / "source", root)
+    assert missing_video_frames(root) == []  # the stage's own dataset: every frame there
+    video = sorted((root / "videos" / "observation.images.wrist").rglob("*.mp4"))[0]
+    _drop_last_frame(video)
+    missing = missing_video_frames(root)
+    last = json.loads((root / "meta" / "info.json").read_text())["total_episodes"] - 1
+    assert len(missing) == 1 and missing[0].startswith(f"{video.relative_to(root)}: episode {last} has {T - 1} of its "
+                                                       f"{T} frames"), missing
 
 
 def test_bad_params_name_the_key(params: dict[str, Any], inputs: dict[str, Path], tmp_path: Path) -> None:

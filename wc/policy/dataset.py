@@ -32,6 +32,7 @@ from tqdm import tqdm
 from wc.atomic import remove_stale_temporaries
 from wc.data.store import ACTION_DIM, TrajectoryStore
 from wc.policy.dataset_config import DatasetConfig
+from wc.policy.video_frame_check import missing_video_frames
 from wc.policy.video_roundtrip import video_encoder
 from wc.render.frames import RenderedStore
 from wc.reports import replace_dir
@@ -127,7 +128,7 @@ def create_dataset(root: Path, repo_id: str, fps: int, height: int, width: int, 
     return LeRobotDataset.create(repo_id, fps=fps, features=dataset_features(height, width), root=root,
                                  robot_type=cfg.robot_type, use_videos=True, rgb_encoder=video_encoder(cfg),
                                  encoder_threads=cfg.encoder_threads or None,
-                                 streaming_encoding=cfg.streaming_encoding, video_backend=VIDEO_BACKEND)
+                                 streaming_encoding=False, video_backend=VIDEO_BACKEND)  # streaming drops frames
 
 
 def _check_target(path: Path) -> None:
@@ -184,6 +185,10 @@ def write_lerobot_dataset(out: str | Path, repo_id: str, episodes: Sequence[Epis
             ds.save_episode(parallel_encoding=False)  # one process: the stage runs on 2 shared cores
             frames += len(state)
         ds.finalize()
+        missing = missing_video_frames(tmp)
+        if missing:
+            raise RuntimeError(f"dataset {out.name}: frames missing from the encoded videos ({len(missing)} episode "
+                               f"videos), e.g. {missing[0]}")
         provenance = _provenance(episodes)
         (tmp / PROVENANCE_FILE).write_text(json.dumps(provenance, indent=1) + "\n")
         per_store = Counter(row["store"] for row in provenance)

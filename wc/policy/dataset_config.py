@@ -25,7 +25,6 @@ class DatasetConfig:
     video_crf: int  # codec quality (lower: better and larger)
     video_gop_frames: int  # keyframe interval; small keeps random frame access cheap
     encoder_threads: int  # threads per video encoder (0: let the codec decide)
-    streaming_encoding: bool  # encode frames as they are added (no PNG round trip) instead of after each episode
     expanded_arm: str = "expanded"  # name of the dataset source + expanded-store episodes; another name builds a
     # control arm from another store, e.g. newton_150 = the source + fresh Newton episodes (policy comparison)
 
