@@ -72,7 +72,8 @@ def test_simulate_writes_the_same_episodes_and_memory_on_ray(tmp_path, in_flight
 
 def test_expand_writes_the_same_episodes_on_ray(tmp_path):
     params = expand_params()
-    params["expand"].update(batch_size=1, batches_in_flight=2, max_attempts=4, untangle="rollback", self_contact=False,
+    params["expand"].update(engine="batches",  # the Ray executor runs the reference engine's batches as its units
+                            batch_size=1, batches_in_flight=2, max_attempts=4, untangle="rollback", self_contact=False,
                             projection_iterations=5, projection_final_edge_passes=0)
     store, model = write_source_store(tmp_path, params), write_tiny_model(tmp_path, params)
     runs = {}
