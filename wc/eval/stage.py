@@ -87,6 +87,12 @@ def load_methods(cfg: EvaluateConfig, train_cfg: TrainConfig, tag_scale: float, 
     return methods, skipped
 
 
+def past_frames(methods: dict[str, Method]) -> int:
+    """Recorded frames before a rollout's start that some method reads (a particle baseline's history - 1)."""
+    return max([getattr(m.predictor, "history", 1) - 1 for m in methods.values() if isinstance(m, LearnedMethod)],
+               default=0)
+
+
 @dataclass
 class MethodScores:
     """A method's held-out errors and penetration (overall and per task) and its rollout time."""
@@ -130,7 +136,7 @@ def stability_curve(method: str, case: Case, x: np.ndarray, signed_distance: np.
     penetration = penetrating_area_pct(signed_distance, case.cloth_area, cfg.penetration_depth_m)
     finite = np.isfinite(x).all(axis=(1, 2))
     step = first_divergence(finite, strain, penetration, cfg.divergence_strain, cfg.divergence_penetration_pct)
-    return StabilityCurve(method, case.task, case.phase.episode, case.phase.start, error,
+    return StabilityCurve(method, case.task, case.phase.episode, case.start, error,
                           penetration, strain, step)
 
 
@@ -244,7 +250,7 @@ def evaluate(params: dict[str, Any], store_path: str | Path = EVALUATE["store"],
     store = TrajectoryStore(store_path)
     dt = float(store.dt)
     methods, skipped = load_methods(cfg, train_cfg, model_cfg.tag_scale, device, scene_cfg, sim_cfg)
-    reader = CaseReader(store, scene_cfg, model_cfg.tag_scale, device)
+    reader = CaseReader(store, scene_cfg, model_cfg.tag_scale, device, past_frames(methods))
 
     held, held_source = held_out_phases(store, train_cfg)
     if not held:
