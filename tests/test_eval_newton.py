@@ -241,7 +241,7 @@ def test_every_method_rolls_the_first_chart_case_once_untimed(store_path, config
     phase = episode_phases(store, "ep_000000")[0]
     phases = [Phase(phase.episode, start, phase.stop, phase.layout) for start in (0, 2)]
     cfg = EvaluateConfig(rollout_frames=3, stability_frames=3, methods={"z": MethodSpec("zero_motion")},
-                         chart_max_cases=1)
+                         chart_max_cases=1, episode_frames=3, phase_starts=0)  # one whole rollout per span
     counting = CountingZeroMotion()
     out = held_out_scores(CaseReader(store, scene_cfg, 0.02, CPU), phases, {"z": LearnedMethod(counting, CPU)}, cfg,
                           store.dt)
