@@ -16,6 +16,7 @@ from tests.conftest import load_params
 from wc.baselines import BASELINES, build_baseline
 from wc.baselines.base import ParticleDynamics, start_history
 from wc.baselines.config import BaselineParams
+from wc.baselines.train import recorded_past
 from wc.data.store import TrajectoryStore
 from wc.dynamics import ObjectState
 from wc.eval.cases import CaseReader
@@ -24,7 +25,7 @@ from wc.model.layout import scene_layout
 from wc.model.past_frames import PastFrames
 from wc.scene.config import SceneConfig
 from wc.config import load_section
-from wc.train.data import episode_phases, read_phase_window
+from wc.train.data import Phase, episode_phases, read_phase_window
 
 DT = 0.04
 PARTICLES = {"particles": 12, "steps": 1, "lr": 1e-4, "batch": 1, "neighbor_radius_m": 0.08, "tool_radius_m": 0.05,
@@ -50,7 +51,7 @@ def params() -> dict[str, Any]:
 
 @pytest.fixture(scope="module")
 def store_path(synthetic_store, params) -> Path:
-    return synthetic_store(params, [("carry", "test")], frames=12)
+    return synthetic_store(params, [("carry", "test"), ("handoff", "test")], frames=12)
 
 
 def _window(store_path: Path, start: int, length: int):
@@ -165,3 +166,22 @@ def test_stepping_a_baseline_from_a_case_gives_its_rollout(store_path, params):
         state = dynamics.step(state, case.actions[k])
         np.testing.assert_allclose(state.x, x[k - 1], atol=1e-6)
     np.testing.assert_allclose(x[0] - case.x[0], case.x[0] - case.past_x[-1], atol=1e-6)  # the recorded motion goes on
+
+
+def test_the_recorded_past_stays_in_the_episodes_layout_and_reaches_before_a_held_out_block(store_path, params):
+    """A held-out block starts with the episode's frames before it; after a hand-off's release the past is the
+    second layout's frames only (before it the ball was a held body, not predicted vertices)."""
+    store = TrajectoryStore(store_path)
+    reader = CaseReader(store, load_section(params, "scene", SceneConfig), 0.02, torch.device("cpu"), past_frames=3)
+    whole = episode_phases(store, "ep_000000")[0]
+    block = Phase(whole.episode, 6, 10, whole.layout)
+    case = reader.case(block, 3)
+    np.testing.assert_array_equal(case.past_x, read_phase_window(store, whole, 3, 3)["x"])
+    before, after = episode_phases(store, "ep_000001")
+    assert reader.case(after, 3).past_x.shape[0] == 0
+    later = reader.case(after, 3, start=after.start + 2)
+    np.testing.assert_array_equal(later.past_x, read_phase_window(store, after, after.start, 2)["x"])
+    assert reader.case(before, 3, start=2).past_x.shape[0] == 2
+    past = recorded_past(store, block, 3, torch.device("cpu"))  # training's held-out rollouts read the same frames
+    np.testing.assert_array_equal(past.x[0].numpy(), case.past_x)
+    assert recorded_past(store, after, 3, torch.device("cpu")) is None

@@ -27,7 +27,9 @@ from wc.baselines.stopping import StopRule
 from wc.data.store import TrajectoryStore
 from wc.model.layout import SceneLayout, scene_layout
 from wc.train.config import TrainConfig
-from wc.train.data import LayoutBatchSampler, LayoutKey, Phase, Window, WindowDataset, overall, read_phase_window
+from wc.model.past_frames import PastFrames
+from wc.train.data import (LayoutBatchSampler, LayoutKey, Phase, Window, WindowDataset, layout_phase_start, overall,
+                           read_phase_window)
 from wc.train.evaluation import load_window, phase_rollout_errors
 from wc.train.loop import prepare_data
 from wc.train.noise import noisy_history
@@ -78,11 +80,22 @@ def reference_losses(model: ParticleDynamics, store: TrajectoryStore, windows: l
     return {"val_loss_zero_motion": zero / n, "val_loss_constant_velocity": constant / n}
 
 
+def recorded_past(store: TrajectoryStore, phase: Phase, frames: int, device: torch.device) -> PastFrames | None:
+    """Up to `frames` recorded frames before `phase.start` in its layout (a validation block has the episode's), as
+    evaluate gives them to a baseline; None at the first frame of the layout."""
+    k = min(frames, phase.start - layout_phase_start(store, phase))
+    if k <= 0:
+        return None
+    a = read_phase_window(store, phase, phase.start - k, k)
+    return PastFrames(*(torch.from_numpy(a[key])[None].to(device) for key in ("x", "v", "poses")))
+
+
 def rollout_error(model: ParticleDynamics, store: TrajectoryStore, phases: list[Phase], frames: int, layout_for,
                   device: torch.device) -> dict[str, float]:  # noqa: ANN001
-    """`phase_rollout_errors` of the baseline's rollouts (history before the first frame padded as in `rollout`)."""
+    """`phase_rollout_errors` of the baseline's rollouts, each given the recorded frames before its start."""
     return phase_rollout_errors(store, phases, frames, device, lambda p, batch: model.rollout(
-        layout_for(p.layout), batch["x"][:, 0], batch["v"][:, 0], batch["poses"], store.dt)[0])
+        layout_for(p.layout), batch["x"][:, 0], batch["v"][:, 0], batch["poses"], store.dt,
+        recorded_past(store, p, model.history - 1, device))[0])
 
 
 def train_baseline(name: str, store_path: str | Path, out_dir: str | Path, cfg: BaselinesConfig,

@@ -1,9 +1,9 @@
 """Evaluation cases: which stored phases are rolled out, and everything a rollout and its scoring need.
 
 A case is one phase (wc.train.data.episode_phases: a hand-off episode has two) read from a start frame (its first,
-unless asked otherwise): the recorded x, v, commanded actions and prescribed body poses, the frames of the phase
-recorded before the start (up to the reader's `past_frames`: what a model of past frames is given, as in
-training), the model's scene layout, and the collision scene (table, robot boxes, rigid and held objects) rebuilt
+unless asked otherwise): the recorded x, v, commanded actions and prescribed body poses, the frames of the same
+layout recorded before the start (up to the reader's `past_frames`: what a model of past frames is given, as in
+training; a held-out block's start has the episode's frames before it), the model's scene layout, and the collision scene (table, robot boxes, rigid and held objects) rebuilt
 from params `scene` for that phase.
 """
 
@@ -21,7 +21,7 @@ from wc.model.layout import SceneLayout, scene_layout
 from wc.scene.config import SceneConfig
 from wc.scene.scene import Scene, build_scene
 from wc.train.config import TrainConfig
-from wc.train.data import LayoutKey, Phase, episode_phases, phases_of, read_phase_window
+from wc.train.data import LayoutKey, Phase, episode_phases, layout_phase_start, phases_of, read_phase_window
 from wc.train.loop import prepare_data
 from wc.validate.predicates import cloth_rows
 from wc.scene.episode_scenes import EpisodeScenes, episode_held
@@ -32,7 +32,7 @@ class Case:
     """T frames of one phase from frame `start`: x, v (T, N, 3), the commanded actions (T, 14), poses (T, P, 7) of
     layout.bodies as recorded, link_poses (T, L, 7) in scene.link_names order, cloth_area (N_cloth,) m^2 of the
     scene's cloth rows; past_x, past_v (K, N, 3) and past_poses (K, P, 7) the K phase frames recorded before
-    `start` (K = 0 at the phase's first frame)."""
+    `start` in the episode's phase of this layout (K = 0 at its first frame)."""
 
     phase: Phase
     task: str
@@ -126,7 +126,7 @@ class CaseReader:
         if start < phase.start or length < 2:
             raise ValueError(f"{self.store.path}: phase [{phase.start}, {phase.stop}) of {phase.episode} has no "
                              f"rollout from frame {start}")
-        k = min(self.past_frames, start - phase.start)
+        k = min(self.past_frames, start - layout_phase_start(self.store, phase))
         a = read_phase_window(self.store, phase, start - k, length + k)
         past = {key: a[key][:k] for key in ("x", "v", "poses")}
         a = {key: value[k:] for key, value in a.items()}
