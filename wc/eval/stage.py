@@ -143,7 +143,8 @@ class HeldOut:
 def held_out_scores(reader: CaseReader, phases: list[Phase], methods: dict[str, Method],
                     cfg: EvaluateConfig, dt: float) -> HeldOut:
     """Scores of the recorded data and every method over the held-out rollouts of `phases`
-    (wc.eval.rollout_plan); the Newton methods roll out the chart's rollouts only."""
+    (wc.eval.rollout_plan); the Newton methods roll out the chart's rollouts only. A phase start at a span's first
+    frame is scored on the head of the span's whole rollout (the same frames), not rolled out (nor timed) again."""
     band = cfg.contact_band_m
 
     def tallies(names: list[str]) -> dict[str, MethodScores]:
@@ -154,6 +155,7 @@ def held_out_scores(reader: CaseReader, phases: list[Phase], methods: dict[str, 
     newton = {n: isinstance(m, NewtonMethod) for n, m in methods.items()}
     out = HeldOut(tallies([GROUND_TRUTH, *(n for n in methods if not newton[n])]), tallies(list(methods)), [], [])
     warmed: set[str] = set()
+    whole: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}  # the span's whole rollout: x, v, signed distance
     for planned in tqdm(plan, desc="evaluate held-out", unit="rollout"):
         case = reader.case(planned.span, planned.frames, planned.start)
         rollout = {"episode": case.phase.episode, "task": case.task, "start_frame": case.start, "steps": case.steps,
@@ -168,8 +170,16 @@ def held_out_scores(reader: CaseReader, phases: list[Phase], methods: dict[str, 
             out.scores[GROUND_TRUTH].add(case, truth_x, truth_v,
                                          cloth_signed_distance(case.scene, truth_x, case.link_poses[1:], band),
                                          planned.label)
+        # a phase start at the span's first frame is the head of its whole rollout (autoregressive, deterministic)
+        reuse = planned.whole or (planned.start == planned.span.start and not charted)
+        if planned.whole:
+            whole = {}
         for name, method in methods.items():
             if newton[name] and not charted:
+                continue
+            if reuse and name in whole and len(whole[name][0]) >= case.steps:
+                x, v, signed_distance = (a[:case.steps] for a in whole[name])
+                out.scores[name].add(case, x, v, signed_distance, planned.label)
                 continue
             dynamics = method.dynamics(case, dt)  # Newton: built, compiled, warmed up on first use; not timed
             if charted and not newton[name] and name not in warmed:  # the first charted rollout once untimed:
@@ -179,6 +189,8 @@ def held_out_scores(reader: CaseReader, phases: list[Phase], methods: dict[str, 
             x, v = predict(dynamics, case)
             seconds = time.perf_counter() - t0
             signed_distance = cloth_signed_distance(case.scene, x, case.link_poses[1:], band)
+            if planned.whole:
+                whole[name] = (x, v, signed_distance)
             for table in ([out.chart] if charted else []) + ([out.scores] if scored and not newton[name] else []):
                 table[name].seconds += seconds
                 table[name].steps += case.steps
