@@ -318,4 +318,9 @@ def evaluate_summary(r: dict[str, Any]) -> str:
                      f"(contact {fmt(m.get('contact_penetration_rate_pct'), '.2f')} %)  "
                      f"diverged {div.get('diverged', 0)}/{div.get('rollouts', 0)} long rollouts")
     lines += [f"  {name:28s} skipped: {why}" for name, why in r["skipped"].items()]
+    w = r.get("whole_episode")
+    if w:
+        lines.append(f"  whole episodes: best baseline / {w['subject']} position MSE {fmt(w['mean_task_ratio'], '.2f')}x "
+                     f"(mean over tasks; worst task {fmt(w['worst_task_ratio'], '.2f')}x, pooled "
+                     f"{fmt(w['pooled_ratio'], '.2f')}x), penetration {fmt(w['penetration_pct'], '.2f')} %")
     return "\n".join(lines)
