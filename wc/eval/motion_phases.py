@@ -18,11 +18,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from wc.tasks.motion import ARM_COLUMNS
+from wc.train.events import GRIPPER_COLUMNS, OPENING_EPS_M
+
 PHASE_NAMES = ("approach", "grasp", "lift", "hold", "release", "drop")
-GRIPPER_COLUMNS = [6, 13]  # commanded openings (m) in the 14-D action
-JOINT_COLUMNS = [0, 1, 2, 3, 4, 5, 7, 8, 9, 10, 11, 12]
+JOINT_COLUMNS = [c for joints, _ in ARM_COLUMNS.values() for c in range(14)[joints]]  # arm joints in the action
 JOINT_STILL_RAD = 1e-4  # a joint moving less than this per frame is still (IK of a held pose jitters below it)
-GRIPPER_STILL_M = 1e-5  # an opening changing less than this per frame is still
 
 
 @dataclass(frozen=True)
@@ -43,9 +44,9 @@ def frame_labels(actions: np.ndarray) -> list[str]:
     moving = (np.abs(np.diff(a[:, JOINT_COLUMNS], axis=0)) > JOINT_STILL_RAD).any(axis=1)
     labels, grasped, released = [], False, False
     for t in range(len(a) - 1):
-        if (grip[t] < -GRIPPER_STILL_M).any():
+        if (grip[t] < -OPENING_EPS_M).any():
             label, grasped = "grasp", True
-        elif (grip[t] > GRIPPER_STILL_M).any():
+        elif (grip[t] > OPENING_EPS_M).any():
             label, released = "release", True
         elif released:
             label = "drop"
