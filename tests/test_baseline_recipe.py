@@ -77,8 +77,9 @@ def test_switches_are_recorded_and_rollout_selection_keeps_the_best_rollout(stor
     assert 0.0 <= report["recipe"]["event_window_share"] <= 1.0 and report["recipe"]["select_by"] == "rollout"
     scores = [h["rollout_position_mse_m2"] for h in report["history"]]
     assert report["best_score"] == min(scores) and report["best_step"] == report["history"][int(np.argmin(scores))]["step"]
-    for h in report["history"]:
-        assert h["val_loss_zero_motion"] == report["val_loss_zero_motion"] > 0
+    for h in report["history"]:  # logged beside every validation loss (the window here may be a bag at rest: 0)
+        assert h["val_loss_zero_motion"] == report["val_loss_zero_motion"] >= 0
+        assert h["val_loss_constant_velocity"] == report["val_loss_constant_velocity"] >= 0
     assert load_baseline(tmp_path / "on").name == "robocook"
 
 

@@ -322,7 +322,7 @@ def test_evaluate_stage_end_to_end(tmp_path, store_path, params):
     assert (out / "stability.png").stat().st_size > 10_000
     speed = {row["method"]: row for row in csv.DictReader((out / "speed_accuracy.csv").open())}
     assert set(speed) == set(r["methods"])
-    for name, m in r["methods"].items():  # speed = simulated seconds per wall second of that method's rollouts
+    for name, m in r["speed_accuracy"]["methods"].items():  # simulated s per wall s of its charted rollouts
         assert float(speed[name]["simulated_s_per_wall_s"]) == pytest.approx(store.dt / m["s_per_step"], rel=1e-6)
         assert float(speed[name]["position_mse_m2"]) == pytest.approx(m["position_mse_m2"], rel=1e-6)
     assert (out / "speed_accuracy.png").stat().st_size > 10_000
