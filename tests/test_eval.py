@@ -223,7 +223,7 @@ def test_worldcontact_predictor_matches_the_model_rollout(store_path, params):
 
 def _stage_params(params: dict[str, Any], models: Path) -> dict[str, Any]:
     p = copy.deepcopy(params)
-    p["evaluate"].update(rollout_frames=4, stability_frames=8, chart_max_cases=None, methods={  # the chart: every case
+    p["evaluate"].update(rollout_frames=4, episode_frames=4, phase_starts=1, stability_frames=8, methods={
         "worldcontact": {"kind": "worldcontact", "path": str(models / "worldcontact")},
         "robocraft": {"kind": "baseline", "path": str(models / "baselines" / "robocraft")},
         "zero_motion": {"kind": "zero_motion"},
@@ -286,8 +286,10 @@ def test_evaluate_stage_end_to_end(tmp_path, store_path, params):
     weights = models / "worldcontact" / "model.safetensors"  # the report names the weights by their hash
     assert set(r["models"]) == {"worldcontact"} and r["models"]["worldcontact"]["sha256"] == file_sha256(weights)
     assert r["dt"] == pytest.approx(TrajectoryStore(store_path).dt)
-    assert r["held_out"]["rollouts"] == 3  # the fall, and the hand-off's two phases
-    # zero motion, by hand: pooled over every vertex-frame of the three rollouts
+    whole = [h for h in r["held_out"]["phases"] if h["label"] == "episode"]
+    assert len(whole) == 3  # the fall, and the hand-off's two phases, each from its first frame
+    assert len(r["held_out"]["phases"]) == r["held_out"]["rollouts"] == 6  # and one from a motion phase of each
+    # zero motion, by hand: pooled over every vertex-frame of the three whole rollouts
     store = TrajectoryStore(store_path)
     sums = count = 0.0
     for eid in ("ep_000002", "ep_000003"):
@@ -296,7 +298,16 @@ def test_evaluate_stage_end_to_end(tmp_path, store_path, params):
             sums += np.square(x[1:] - x[:1]).sum()
             count += x[1:].shape[0] * x.shape[1]
     zero = r["methods"]["zero_motion"]
-    assert zero["position_mse_m2"] == pytest.approx(sums / count, rel=1e-6)
+    assert zero["whole_episode"]["position_mse_m2"] == pytest.approx(sums / count, rel=1e-6)
+    assert set(zero["per_phase"]) == {h["label"] for h in r["held_out"]["phases"]} - {"episode"}
+    ratios = r["whole_episode"]  # WorldContact against the best of the references, task by task
+    assert ratios["subject"] == "worldcontact" and ratios["baselines"] == ["zero_motion", "constant_velocity"]
+    for task, row in ratios["per_task"].items():
+        mse = {m: r["methods"][m]["whole_episode"]["per_task"][task]["position_mse_m2"] for m in ratios["baselines"]}
+        assert row["best_baseline_mse_m2"] == min(mse.values())
+        assert row["ratio"] == pytest.approx(min(mse.values()) / row["subject_mse_m2"])
+    assert ratios["mean_task_ratio"] == pytest.approx(np.mean([row["ratio"] for row in ratios["per_task"].values()]))
+    assert ratios["penetration_pct"] == r["methods"]["worldcontact"]["whole_episode"]["penetration_rate_pct"]
     assert set(zero["per_task"]) == {"fall", "handoff"}
     assert set(zero["per_horizon"]["position_mse_m2"]) == {"1", "2", "3", "4"}
     wc = r["methods"]["worldcontact"]
@@ -311,7 +322,7 @@ def test_evaluate_stage_end_to_end(tmp_path, store_path, params):
     assert (out / "stability.png").stat().st_size > 10_000
     speed = {row["method"]: row for row in csv.DictReader((out / "speed_accuracy.csv").open())}
     assert set(speed) == set(r["methods"])
-    for name, m in r["methods"].items():  # speed = simulated seconds per wall second of that method's rollouts
+    for name, m in r["speed_accuracy"]["methods"].items():  # simulated s per wall s of its charted rollouts
         assert float(speed[name]["simulated_s_per_wall_s"]) == pytest.approx(store.dt / m["s_per_step"], rel=1e-6)
         assert float(speed[name]["position_mse_m2"]) == pytest.approx(m["position_mse_m2"], rel=1e-6)
     assert (out / "speed_accuracy.png").stat().st_size > 10_000

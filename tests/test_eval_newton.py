@@ -241,10 +241,28 @@ def test_every_method_rolls_the_first_chart_case_once_untimed(store_path, config
     phase = episode_phases(store, "ep_000000")[0]
     phases = [Phase(phase.episode, start, phase.stop, phase.layout) for start in (0, 2)]
     cfg = EvaluateConfig(rollout_frames=3, stability_frames=3, methods={"z": MethodSpec("zero_motion")},
-                         chart_max_cases=1)
+                         chart_max_cases=1, episode_frames=3, phase_starts=0)  # one whole rollout per span
     counting = CountingZeroMotion()
     out = held_out_scores(CaseReader(store, scene_cfg, 0.02, CPU), phases, {"z": LearnedMethod(counting, CPU)}, cfg,
                           store.dt)
     assert len(out.rolled) == 2 and len(out.charted) == 1
     assert counting.rollouts == 3  # the charted rollout twice (warm-up + timed), the other once
     assert out.chart["z"].steps == out.charted[0]["steps"]  # the warm-up is neither timed nor scored
+
+
+def test_a_phase_start_at_a_spans_first_frame_reuses_its_whole_rollout(store_path, configs):
+    """The synthetic episodes have one motion phase: its start is the span's first frame, scored on the head of the
+    whole rollout (planted bug caught: rolling it out again doubles the rollouts and their cost)."""
+    scene_cfg, _ = configs
+    store = TrajectoryStore(store_path)
+    phase = episode_phases(store, "ep_000000")[0]
+    cfg = EvaluateConfig(rollout_frames=2, stability_frames=3, methods={"z": MethodSpec("zero_motion")},
+                         episode_frames=4, phase_starts=1)
+    counting = CountingZeroMotion()
+    out = held_out_scores(CaseReader(store, scene_cfg, 0.02, CPU), [phase], {"z": LearnedMethod(counting, CPU)}, cfg,
+                          store.dt)
+    assert [(r["label"], r["start_frame"], r["steps"]) for r in out.rolled] == [("episode", 0, 4), ("approach", 0, 2)]
+    assert counting.rollouts == 3  # the whole rollout and the chart's 2-step one (warm-up, timed); not the phase start
+    head = out.scores["z"].episode_errors.summary()["per_horizon"]["position_mse_m2"]  # the whole rollout, by step
+    approach = out.scores["z"].summary()["per_phase"]["approach"]["position_mse_m2"]
+    assert approach == pytest.approx((head["1"] + head["2"]) / 2, rel=1e-9) and head["2"] > 0

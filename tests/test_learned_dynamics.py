@@ -12,7 +12,7 @@ import torch
 
 from wc.dynamics import Dynamics, ObjectState
 from wc.eval.predictors import ConstantVelocity
-from wc.model.learned_dynamics import LearnedDynamics
+from wc.model.learned_dynamics import LearnedDynamics, finite_rollout
 from wc.model.prescribed_inputs import KinematicInputs, RecordedInputs
 from wc.scene.scene import build_scene
 from wc.sim.newton_sim import NewtonSimulator
@@ -162,3 +162,36 @@ def test_bad_steps_are_named(scene):
         dynamics.step(initial, actions[1])
     with pytest.raises(RuntimeError, match="before start"):  # a failed step ends the episode
         dynamics.step(initial, actions[1])
+
+
+class PastRecorder(ConstantVelocity):
+    """Constant velocity with a 4-frame history that keeps the past frames it is given; episode 1 of the first call
+    diverges at its second step."""
+
+    history = 4
+
+    def __init__(self) -> None:
+        self.pasts = []
+
+    def rollout(self, layout, x0, v0, poses, dt, past=None):  # noqa: ANN001, ANN201 - a history model's signature
+        self.pasts.append(past)
+        x, v = super().rollout(layout, x0, v0, poses, dt)
+        if len(self.pasts) == 1:
+            x[1, 1:] = float("nan")
+        return x, v
+
+
+def test_a_restart_after_a_divergence_gives_a_history_model_the_frames_before_it():
+    """Episode 0 goes on from frame 2 with its recorded frame -1 and its predicted frames 0, 1 as history (planted bug
+    caught: restarting from the recorded past only, or with none, would start it from a bag that jumped)."""
+    n, t = 5, 6
+    x0 = np.random.default_rng(0).random((2, n, 3)).astype(np.float32)
+    v0 = np.full((2, n, 3), 0.1, np.float32)
+    poses = np.zeros((2, t, 1, 7), np.float32)
+    past = (x0[:, None] - DT * v0[:, None], v0[:, None], poses[:, :1])
+    predictor = PastRecorder()
+    x, _ = finite_rollout(predictor, None, x0, v0, poses, DT, torch.device("cpu"), past)
+    assert len(predictor.pasts) == 2 and np.isnan(x[1, 2:]).all() and np.isfinite(x[0]).all()
+    np.testing.assert_array_equal(predictor.pasts[0].x.numpy(), past[0])
+    again = predictor.pasts[1].x.numpy()  # (1, 3, N, 3): frames -1, 0, 1 of episode 0
+    np.testing.assert_allclose(again[0], np.stack([past[0][0, 0], x0[0], x[0, 1]]), atol=1e-7)

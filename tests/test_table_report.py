@@ -94,3 +94,27 @@ def test_missing_dt_is_named(tmp_path, metrics):
 def test_training_rows_skip_unknown_reports(tmp_path):
     (tmp_path / "train_other.json").write_text(json.dumps({"steps": 5}))
     assert training_rows(tmp_path) == {}
+
+
+def test_report_shows_the_whole_episode_ratios_and_the_phases(tmp_path, metrics):
+    metrics["held_out"]["episode_frames"] = 250
+    metrics["whole_episode"] = {
+        "subject": "worldcontact", "baselines": ["robocraft", "zero_motion"], "rollouts": 6, "mean_task_ratio": 8.5,
+        "worst_task_ratio": 0.8, "pooled_ratio": 20.6, "penetration_pct": 0.2,
+        "per_task": {"grasp": {"ratio": 16.2, "best_baseline": "zero_motion", "best_baseline_mse_m2": 3.2e-3,
+                               "subject_mse_m2": 2e-4},
+                     "lift": {"ratio": 0.8, "best_baseline": "robocraft", "best_baseline_mse_m2": 1.6e-5,
+                              "subject_mse_m2": 2e-5}}}
+    for i, m in enumerate(metrics["methods"].values()):
+        m["per_phase"] = {"approach": {"position_mse_m2": 1e-6 * (i + 1)}, "lift": {"position_mse_m2": 1e-5 * (i + 1)}}
+    (tmp_path / "metrics.json").write_text(json.dumps(metrics))
+    main(["--metrics", str(tmp_path / "metrics.json"), "--out", str(tmp_path / "t.md")])
+    text = (tmp_path / "t.md").read_text()
+    assert "has 8.5x its position MSE as the mean over tasks of per-task ratios (goal >= 10x: not met)" in text
+    assert "0.80x on the worst task, 20.6x pooled over tasks" in text
+    assert "| lift | robocraft | 1.60e-05 | 2.00e-05 | 0.80 |" in text  # a task a baseline wins is shown
+    assert "| robocraft | 2.00e-06 | 2.00e-05 |" in text.split("per motion phase")[1]
+    del metrics["whole_episode"]  # a report from before whole episodes: no section
+    (tmp_path / "metrics.json").write_text(json.dumps(metrics))
+    main(["--metrics", str(tmp_path / "metrics.json"), "--out", str(tmp_path / "t.md")])
+    assert "Whole held-out episodes" not in (tmp_path / "t.md").read_text()

@@ -45,6 +45,8 @@ HEADLINES = (
              "methods.constant_velocity.position_mse_m2", "constant velocity held-out position MSE (m²)"),
     Headline("evaluate.worldcontact_penetration_rate_pct", "metrics.json",
              "methods.worldcontact.penetration_rate_pct", "WorldContact penetration rate (%)"),
+    Headline("evaluate.whole_episode_mean_task_ratio", "metrics.json", "whole_episode.mean_task_ratio",
+             "whole held-out episodes: best baseline's position MSE / WorldContact's, mean over tasks"),
     Headline("expand.generated", "expand.json", "generated", "generated episodes"),
     Headline("expand.accepted", "expand.json", "accepted", "generated episodes accepted"),
     Headline("expand.trajectories_per_min", "expand.json", "trajectories_per_min",

@@ -3,8 +3,10 @@ edge helpers, the autoregressive particle unroll, the training-window loss and t
 
 Frames and history: a baseline predicts frame t+1 from the object particles at frames t-H+1..t
 (H = `history`) and the prescribed (tool, table) points at frames t-H+1..t+1; the last tool step
-t -> t+1 is the action. Before the first frame of a rollout the history is padded with the first
-frame repeated (no motion), for the particles and the prescribed bodies alike.
+t -> t+1 is the action. Before the first frame of a rollout the history is the recorded frames before it where
+the rollout is given them (`PastFrames`, as training windows have them); further back, the earliest known frame
+moved back at its velocity, x_{-k} = x_e - k v_e dt (so a rollout from an episode's frame 0 starts at v0, not at
+rest), with the bodies held at their earliest known pose.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from torch import nn
 from wc.baselines.config import BaselineParams
 from wc.baselines.sampling import ParticleMap, farthest_points, particle_map
 from wc.model.layout import SceneLayout
+from wc.model.past_frames import PastFrames
 from wc.model.neighbors import radius_pairs
 from wc.rotations import quat_rotate_torch
 
@@ -150,6 +153,25 @@ def radius_graph(step: StepInput, radius_obj: float, radius_tool: float, radius_
     return Graph(torch.cat(recv), torch.cat(send), tb, step.scene.tool_body[ts])
 
 
+def start_history(x0: torch.Tensor, v0: torch.Tensor, poses0: torch.Tensor, dt: float, count: int,
+                  past: PastFrames | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Positions (B, count + 1, N, 3) of frames -count..0 and body poses (B, count, P, 7) of frames -count..-1.
+
+    x0, v0 (B, N, 3) m, m/s and poses0 (B, P, 7) are frame 0. The last frames of `past` are used where it has them;
+    before the earliest known frame e, x_{-k} = x_e - k v_e dt (dt in s) and the bodies keep e's pose.
+    """
+    xs, vs, ps = x0[:, None], v0[:, None], poses0[:, None]
+    if past is not None and past.x.shape[1]:
+        xs = torch.cat([past.x.to(x0), xs], 1)[:, -(count + 1):]
+        vs = torch.cat([past.v.to(v0), vs], 1)[:, -(count + 1):]
+        ps = torch.cat([past.poses.to(poses0), ps], 1)[:, -(count + 1):]
+    missing = count + 1 - xs.shape[1]
+    k = torch.arange(missing, 0, -1, dtype=x0.dtype, device=x0.device)[None, :, None, None]
+    xs = torch.cat([xs[:, :1] - k * dt * vs[:, :1], xs], 1)
+    ps = torch.cat([ps[:, :1].expand(-1, missing, -1, -1), ps], 1)
+    return xs, ps[:, :-1]
+
+
 class ParticleDynamics(nn.Module):
     """A particle baseline. Subclasses give `predict` (one step) and `particle_loss`, and the class facts."""
 
@@ -215,22 +237,26 @@ class ParticleDynamics(nn.Module):
 
     @torch.no_grad()
     def rollout(self, layout: SceneLayout, x0: torch.Tensor, v0: torch.Tensor, poses: torch.Tensor,
-                dt: float) -> tuple[torch.Tensor, torch.Tensor]:
+                dt: float, past: PastFrames | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """Every vertex's (x, v), each (B, T-1, N, 3), for frames 1..T-1 from x0, v0 (B, N, 3), poses (B, T, P, 7).
 
-        v0 is not an input of these models (history before frame 0 is frame 0 repeated); v is the finite
-        difference of the mapped positions over dt (s).
+        The particle history before frame 0 is `start_history`: the recorded frames of `past` (B, K, ...) where
+        given, else frame 0 moved back at v0. v is the finite difference of the mapped positions over dt (s).
         """
         if x0.ndim != 3 or x0.shape[1:] != (layout.num_vertices, 3) or v0.shape != x0.shape:
             raise ValueError(f"{self.name}: x0 and v0 must be (B, {layout.num_vertices}, 3), "
                              f"got {tuple(x0.shape)} and {tuple(v0.shape)}")
         if poses.ndim != 4 or poses.shape[0] != x0.shape[0] or poses.shape[1] < 2:
             raise ValueError(f"{self.name}: poses must be (B={x0.shape[0]}, T>=2, P, 7), got {tuple(poses.shape)}")
+        if past is not None and (past.x.shape[0] != x0.shape[0] or past.x.shape[2:] != x0.shape[1:]
+                                 or past.poses.shape[2:] != poses.shape[2:]):
+            raise ValueError(f"{self.name}: past frames x {tuple(past.x.shape)}, poses {tuple(past.poses.shape)} do "
+                             f"not match x0 {tuple(x0.shape)} and poses {tuple(poses.shape)}")
         pmap = self.scene(layout).particles
-        h = self.history
-        padded = torch.cat([poses[:, :1].expand(-1, h - 1, -1, -1), poses], 1)
+        history, before = start_history(x0, v0, poses[:, 0], dt, self.history - 1, past)
         p0 = x0[:, pmap.vertices]
-        particles = self.unroll(layout, p0[:, None].expand(-1, h, -1, -1).contiguous(), padded, rebuild=True)
+        particles = self.unroll(layout, history[:, :, pmap.vertices].contiguous(), torch.cat([before, poses], 1),
+                                rebuild=True)
         x = pmap.to_vertices(x0, p0, particles)
         v = (x - torch.cat([x0[:, None], x[:, :-1]], 1)) / dt
         return x, v

@@ -43,8 +43,9 @@ def run(params: dict[str, Any], store: str | Path = TRAIN_BASELINES["store"], ou
 
 def train_baselines_summary(r: dict[str, Any]) -> str:
     """The lines `python -m stages.train_baselines` prints: one per baseline, then the wall time."""
-    lines = [f"{name}: {b['steps_done']} steps ({b['stopped_by']}), best val loss {b['best_val_loss']:.4g} at step "
-             f"{b['best_step']}, rollout MSE "
+    lines = [f"{name}: {b['steps_done']} steps ({b['stopped_by']}), best val loss {b['best_val_loss']:.4g} (zero "
+             f"motion {b['val_loss_zero_motion']:.4g}, constant velocity {b['val_loss_constant_velocity']:.4g}), "
+             f"kept step {b['best_step']} (by {b['recipe']['select_by']}), rollout MSE "
              f"{b['rollout_position_mse_m2']:.3g} m² (zero motion {b['rollout_zero_motion_mse_m2']:.3g}), "
              f"{b['s_per_step_median']:.3f} s/step" for name, b in r["baselines"].items()]
     return "\n".join([*lines, f"train_baselines: {r['wall_s']:.0f} s"])

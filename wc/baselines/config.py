@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+SELECT_BY = ("val_loss", "rollout")
+
 
 @dataclass(frozen=True)
 class BaselineParams:
@@ -53,8 +55,13 @@ class BaselinesConfig:
     device: str = "cpu"
     seed: int = 0
     max_minutes: float = 0.0  # wall-time budget per baseline (0 = none): stops after the step that passes it
-    patience_evals: int = 0  # stop once the validation loss has not improved for this many evals (0 = never):
-    # "trained to convergence"; the weights of the best validation loss are the ones saved
+    patience_evals: int = 0  # stop once the validation score has not improved for this many evals (0 = never):
+    # "trained to convergence"; the weights of the best validation score are the ones saved
+    # WorldContact's training recipe, each a switch (off: the originals' recipe; the report records them):
+    input_noise: bool = False  # random-walk noise of std train.input_noise_m on each window's observed frames
+    event_oversample: bool = False  # windows near a contact event drawn 1 + train.event_oversample times as often
+    select_by: str = "val_loss"  # val_loss | rollout: the weights kept are those of the best validation particle
+    # loss, or of the lowest held-out rollout position MSE (rollout_frames steps of rollout_phases validation phases)
 
     def validate(self) -> None:
         if not self.names:
@@ -65,6 +72,8 @@ class BaselinesConfig:
         for key in ("eval_every_steps", "val_windows", "rollout_frames", "rollout_phases"):
             if getattr(self, key) < 1:
                 raise ValueError(f"{key} must be >= 1, got {getattr(self, key)}")
+        if self.select_by not in SELECT_BY:
+            raise ValueError(f"select_by must be one of {SELECT_BY}, got {self.select_by!r}")
         if self.max_minutes < 0 or self.patience_evals < 0:
             raise ValueError(f"max_minutes and patience_evals must be >= 0 (0 = off), got {self.max_minutes}, "
                              f"{self.patience_evals}")

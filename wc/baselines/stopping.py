@@ -12,12 +12,12 @@ class StopRule:
     """Tracks the wall time and the best validation loss of one training run (0 disables either rule).
 
     `record` after every validation; `converged` once `patience_evals` validations in a row failed to improve on
-    the best; `restore_best` loads the best validation weights back (only where the patience rule is on, so a run
-    without it keeps its last weights as before).
+    the best; `restore_best` loads the best validation weights back (only where the patience rule is on or
+    `keep_best` is set, so a run with neither keeps its last weights as before).
     """
 
-    def __init__(self, max_minutes: float = 0.0, patience_evals: int = 0) -> None:
-        self.max_minutes, self.patience_evals = max_minutes, patience_evals
+    def __init__(self, max_minutes: float = 0.0, patience_evals: int = 0, keep_best: bool = False) -> None:
+        self.max_minutes, self.patience_evals, self.keep_best = max_minutes, patience_evals, keep_best
         self.started = time.monotonic()
         self.best_val = float("inf")
         self.best_step = 0
@@ -33,7 +33,7 @@ class StopRule:
     def record(self, step: int, val_loss: float, model: torch.nn.Module) -> None:
         if val_loss < self.best_val:
             self.best_val, self.best_step, self.since_best = val_loss, step, 0
-            if self.patience_evals:
+            if self.patience_evals or self.keep_best:
                 self.best_state = copy.deepcopy(model.state_dict())
         else:
             self.since_best += 1

@@ -1,8 +1,10 @@
 """Training one baseline on a trajectory store: same split and holdout rule as WorldContact (wc.train.loop.prepare_data).
 
 Writes `<out>/model.safetensors` + `model.json` under `<out>.partial/`, renamed into place when done.
-The report holds the loss history, s/step and the held-out rollout position MSE of every mesh vertex
-(against the zero-motion reference), measured through the public `rollout`.
+The report holds the loss history, s/step, the held-out rollout position MSE of every mesh vertex
+(against the zero-motion reference), measured through the public `rollout`, the validation loss zero motion and
+constant velocity of the particles would have under the baseline's own loss, and the training recipe: which of
+WorldContact's switches (input noise, event oversampling, checkpoint selection by held-out rollout) were on.
 """
 
 from __future__ import annotations
@@ -25,9 +27,12 @@ from wc.baselines.stopping import StopRule
 from wc.data.store import TrajectoryStore
 from wc.model.layout import SceneLayout, scene_layout
 from wc.train.config import TrainConfig
-from wc.train.data import LayoutBatchSampler, LayoutKey, Phase, Window, WindowDataset, overall, read_phase_window
+from wc.model.past_frames import PastFrames
+from wc.train.data import (LayoutBatchSampler, LayoutKey, Phase, Window, WindowDataset, layout_phase_start, overall,
+                           read_phase_window)
 from wc.train.evaluation import load_window, phase_rollout_errors
 from wc.train.loop import prepare_data
+from wc.train.noise import noisy_history
 
 TAG_SCALE = 1.0  # the baselines do not read the layout's tag attribute
 
@@ -50,11 +55,47 @@ def validation_loss(model: ParticleDynamics, store: TrajectoryStore, windows: li
     return total / max(1, len(windows))
 
 
+def reference_particle_losses(model: ParticleDynamics, p: torch.Tensor) -> tuple[float, float]:
+    """The model's own loss on particle windows p (B, H + S, K, 3) [m] of two references that need no training, from
+    the last observed frame t: particles that stay (zero motion), and particles that keep their last displacement,
+    p_{t+k} = p_t + k (p_t - p_{t-1}) (constant velocity)."""
+    h = model.history
+    last, step = p[:, h - 1:h], p[:, h - 1:h] - p[:, h - 2:h - 1]
+    k = torch.arange(1, p.shape[1] - h + 1, dtype=p.dtype, device=p.device)[None, :, None, None]
+    return (float(model.particle_loss(last.expand_as(p[:, h:]), p[:, h:])),
+            float(model.particle_loss(last + k * step, p[:, h:])))
+
+
+@torch.no_grad()
+def reference_losses(model: ParticleDynamics, store: TrajectoryStore, windows: list[Window], length: int,
+                     layout_for, device: torch.device) -> dict[str, float]:  # noqa: ANN001 - layout_for(key) -> SceneLayout
+    """Mean `reference_particle_losses` over `windows`: a baseline whose validation loss is above zero motion's has
+    learned less than nothing."""
+    zero = constant = 0.0
+    for w in windows:
+        idx = model.scene(layout_for(w.phase.layout)).particles.vertices
+        z, c = reference_particle_losses(model, load_window(store, w, length, device)["x"][:, :, idx])
+        zero, constant = zero + z, constant + c
+    n = max(1, len(windows))
+    return {"val_loss_zero_motion": zero / n, "val_loss_constant_velocity": constant / n}
+
+
+def recorded_past(store: TrajectoryStore, phase: Phase, frames: int, device: torch.device) -> PastFrames | None:
+    """Up to `frames` recorded frames before `phase.start` in its layout (a validation block has the episode's), as
+    evaluate gives them to a baseline; None at the first frame of the layout."""
+    k = min(frames, phase.start - layout_phase_start(store, phase))
+    if k <= 0:
+        return None
+    a = read_phase_window(store, phase, phase.start - k, k)
+    return PastFrames(*(torch.from_numpy(a[key])[None].to(device) for key in ("x", "v", "poses")))
+
+
 def rollout_error(model: ParticleDynamics, store: TrajectoryStore, phases: list[Phase], frames: int, layout_for,
                   device: torch.device) -> dict[str, float]:  # noqa: ANN001
-    """`phase_rollout_errors` of the baseline's rollouts (history before the first frame padded as in `rollout`)."""
+    """`phase_rollout_errors` of the baseline's rollouts, each given the recorded frames before its start."""
     return phase_rollout_errors(store, phases, frames, device, lambda p, batch: model.rollout(
-        layout_for(p.layout), batch["x"][:, 0], batch["v"][:, 0], batch["poses"], store.dt)[0])
+        layout_for(p.layout), batch["x"][:, 0], batch["v"][:, 0], batch["poses"], store.dt,
+        recorded_past(store, p, model.history - 1, device))[0])
 
 
 def train_baseline(name: str, store_path: str | Path, out_dir: str | Path, cfg: BaselinesConfig,
@@ -80,15 +121,23 @@ def train_baseline(name: str, store_path: str | Path, out_dir: str | Path, cfg: 
     optimizer = torch.optim.Adam(model.parameters(), lr=params.lr)
     plateau = torch.optim.lr_scheduler.ReduceLROnPlateau(optimizer, factor=0.8, patience=3) if model.plateau else None
     dataset = WindowDataset(store_path, data.train_windows, window)
+    weights = data.window_weights if cfg.event_oversample else None
     loader = iter(torch.utils.data.DataLoader(dataset, batch_sampler=LayoutBatchSampler(
-        data.train_windows, params.batch, cfg.seed), num_workers=0))
+        data.train_windows, params.batch, cfg.seed, weights=weights), num_workers=0))
+    noise_m = train_cfg.input_noise_m if cfg.input_noise else 0.0
+    recipe = {"input_noise_m": noise_m, "event_oversample": train_cfg.event_oversample if weights is not None else 0.0,
+              "event_window_share": data.event_share if weights is not None else None, "select_by": cfg.select_by}
+    picked = data.val_phases[:: max(1, len(data.val_phases) // cfg.rollout_phases)][:cfg.rollout_phases]
+    references = reference_losses(model, store, data.val_windows, window, layout_for, device)
     history, recent, step_times = [], [], []
-    stop = StopRule(cfg.max_minutes, cfg.patience_evals)
+    stop = StopRule(cfg.max_minutes, cfg.patience_evals, keep_best=cfg.select_by == "rollout")
     for step in tqdm(range(1, params.steps + 1), desc=f"train {name}"):
         batch = next(loader)
         layout = layout_for(dataset.layout_keys[int(batch["layout"][0])])
         t0 = time.perf_counter()
-        loss = model.window_loss(layout, batch["x"].to(device), batch["poses"].to(device))
+        x = batch["x"].to(device)
+        x = torch.cat([noisy_history(x[:, :model.history], noise_m), x[:, model.history:]], 1)
+        loss = model.window_loss(layout, x, batch["poses"].to(device))
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()
@@ -100,18 +149,21 @@ def train_baseline(name: str, store_path: str | Path, out_dir: str | Path, cfg: 
         if step % cfg.eval_every_steps == 0 or step == params.steps or out_of_time:
             model.eval()
             val = validation_loss(model, store, data.val_windows, window, layout_for, device)
+            entry = {"step": step, "train_loss": float(np.mean(recent)), "val_loss": val, **references}
+            score = val
+            if cfg.select_by == "rollout":
+                entry.update(rollout_error(model, store, picked, cfg.rollout_frames, layout_for, device))
+                score = entry["rollout_position_mse_m2"] if np.isfinite(entry["rollout_position_mse_m2"]) else np.inf
             model.train()
             if plateau is not None:
                 plateau.step(val)
-            history.append({"step": step, "train_loss": float(np.mean(recent)), "val_loss": val,
-                            "lr": optimizer.param_groups[0]["lr"]})
+            history.append({**entry, "lr": optimizer.param_groups[0]["lr"]})
             recent = []
-            stop.record(step, val, model)
+            stop.record(step, score, model)
         if out_of_time or stop.converged():
             break
     stop.restore_best(model)
     model.eval()
-    picked = data.val_phases[:: max(1, len(data.val_phases) // cfg.rollout_phases)][:cfg.rollout_phases]
     errors = rollout_error(model, store, picked, cfg.rollout_frames, layout_for, device)
     out_dir, work = Path(out_dir), Path(f"{out_dir}.partial")
     shutil.rmtree(work, ignore_errors=True)
@@ -124,7 +176,8 @@ def train_baseline(name: str, store_path: str | Path, out_dir: str | Path, cfg: 
                                        ((k, model.scene(layout_for(k))) for k in dataset.layout_keys)},
               "train_s": float(sum(step_times)), "wall_s": stop.elapsed_s(), "steps_done": len(step_times),
               "stopped_by": stop.reason(len(step_times), params.steps), "best_step": stop.best_step,
-              "best_val_loss": stop.best_val, **errors}
+              "best_val_loss": min(h["val_loss"] for h in history), "best_score": stop.best_val, "recipe": recipe,
+              **references, **errors}
     save_baseline(model.cpu(), work, {**(meta or {}), "dt": store.dt, "steps": len(step_times),
                                       "final_val_loss": report["final_val_loss"], **errors})
     if out_dir.exists():

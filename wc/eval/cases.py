@@ -1,8 +1,10 @@
 """Evaluation cases: which stored phases are rolled out, and everything a rollout and its scoring need.
 
-A case is one phase (wc.train.data.episode_phases: a hand-off episode has two) read from its first
-frame: the recorded x, v, commanded actions and prescribed body poses, the model's scene layout, and the
-collision scene (table, robot boxes, rigid and held objects) rebuilt from params `scene` for that phase.
+A case is one phase (wc.train.data.episode_phases: a hand-off episode has two) read from a start frame (its first,
+unless asked otherwise): the recorded x, v, commanded actions and prescribed body poses, the frames of the same
+layout recorded before the start (up to the reader's `past_frames`: what a model of past frames is given, as in
+training; a held-out block's start has the episode's frames before it), the model's scene layout, and the collision scene (table, robot boxes, rigid and held objects) rebuilt
+from params `scene` for that phase.
 """
 
 from __future__ import annotations
@@ -13,11 +15,13 @@ import numpy as np
 import torch
 
 from wc.data.store import TrajectoryStore
+from wc.dynamics import ObjectState
+from wc.model.learned_dynamics import RecordedPast
 from wc.model.layout import SceneLayout, scene_layout
 from wc.scene.config import SceneConfig
 from wc.scene.scene import Scene, build_scene
 from wc.train.config import TrainConfig
-from wc.train.data import LayoutKey, Phase, episode_phases, phases_of, read_phase_window
+from wc.train.data import LayoutKey, Phase, episode_phases, layout_phase_start, phases_of, read_phase_window
 from wc.train.loop import prepare_data
 from wc.validate.predicates import cloth_rows
 from wc.scene.episode_scenes import EpisodeScenes, episode_held
@@ -25,9 +29,10 @@ from wc.scene.episode_scenes import EpisodeScenes, episode_held
 
 @dataclass(frozen=True)
 class Case:
-    """The first `frames` frames of one phase: x, v (T, N, 3), the commanded actions (T, 14), poses (T, P, 7) of
+    """T frames of one phase from frame `start`: x, v (T, N, 3), the commanded actions (T, 14), poses (T, P, 7) of
     layout.bodies as recorded, link_poses (T, L, 7) in scene.link_names order, cloth_area (N_cloth,) m^2 of the
-    scene's cloth rows."""
+    scene's cloth rows; past_x, past_v (K, N, 3) and past_poses (K, P, 7) the K phase frames recorded before
+    `start` in the episode's phase of this layout (K = 0 at its first frame)."""
 
     phase: Phase
     task: str
@@ -39,10 +44,20 @@ class Case:
     poses: np.ndarray
     link_poses: np.ndarray
     cloth_area: np.ndarray
+    start: int
+    past_x: np.ndarray
+    past_v: np.ndarray
+    past_poses: np.ndarray
 
     @property
     def steps(self) -> int:
         return len(self.x) - 1
+
+    def recorded_past(self) -> RecordedPast | None:
+        """What a model of past frames is given from the recorded start state (None without past frames)."""
+        if not len(self.past_x):
+            return None
+        return RecordedPast(self.past_x, self.past_v, self.past_poses, ObjectState(self.x[0], self.v[0]))
 
 
 def held_out_phases(store: TrajectoryStore, train_cfg: TrainConfig) -> tuple[list[Phase], str]:
@@ -90,8 +105,10 @@ class PhaseScenes(EpisodeScenes):
 class CaseReader:
     """Builds cases from a store; layouts and scenes are made once per phase layout."""
 
-    def __init__(self, store: TrajectoryStore, scene_cfg: SceneConfig, tag_scale: float, device: torch.device) -> None:
+    def __init__(self, store: TrajectoryStore, scene_cfg: SceneConfig, tag_scale: float, device: torch.device,
+                 past_frames: int = 0) -> None:
         self.store = store
+        self.past_frames = past_frames
         self.tag_scale = tag_scale
         self.device = device
         self.scenes = PhaseScenes(scene_cfg, store)
@@ -102,13 +119,17 @@ class CaseReader:
             self._layouts[key] = scene_layout(self.store, list(key[0]), list(key[1]), self.tag_scale).to(self.device)
         return self._layouts[key]
 
-    def case(self, phase: Phase, frames: int) -> Case:
-        """The first min(frames, phase length) frames of the phase."""
-        length = min(frames, phase.stop - phase.start)
-        if length < 2:
-            raise ValueError(f"{self.store.path}: phase [{phase.start}, {phase.stop}) of {phase.episode} is too short "
-                             "to roll out")
-        a = read_phase_window(self.store, phase, phase.start, length)
+    def case(self, phase: Phase, frames: int, start: int | None = None) -> Case:
+        """min(frames, frames left) frames of the phase from frame `start` (default: its first)."""
+        start = phase.start if start is None else start
+        length = min(frames, phase.stop - start)
+        if start < phase.start or length < 2:
+            raise ValueError(f"{self.store.path}: phase [{phase.start}, {phase.stop}) of {phase.episode} has no "
+                             f"rollout from frame {start}")
+        k = min(self.past_frames, start - layout_phase_start(self.store, phase))
+        a = read_phase_window(self.store, phase, start - k, length + k)
+        past = {key: a[key][:k] for key in ("x", "v", "poses")}
+        a = {key: value[k:] for key, value in a.items()}
         scene = self.scenes.phase_scene(phase)
         links = list(phase.layout[1])
         missing = [n for n in scene.link_names if n not in links]
@@ -122,4 +143,5 @@ class CaseReader:
             raise ValueError(f"{self.store.path}: episode {phase.episode}: {a['x'].shape[1]} rows of x, "
                              f"{areas.shape[0]} vertex areas of {phase.layout[0]}")
         return Case(phase, str(self.store.episode_attrs(phase.episode)["task"]), self.layout(phase.layout), scene,
-                    a["x"], a["v"], a["action"], a["poses"], link_poses, areas[cloth].astype(np.float64))
+                    a["x"], a["v"], a["action"], a["poses"], link_poses, areas[cloth].astype(np.float64), start,
+                    past["x"], past["v"], past["poses"])

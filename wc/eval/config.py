@@ -51,7 +51,7 @@ class MethodSpec:
 class EvaluateConfig:
     """Held-out rollouts (Table 1 analogue) and long stability rollouts of every method."""
 
-    rollout_frames: int  # steps of each held-out rollout from its first frame (capped by the data)
+    rollout_frames: int  # steps of each held-out rollout from a motion phase's start and on the chart (capped)
     stability_frames: int  # steps of each long rollout (>= 100 = 4 s at paper settings; capped by the episode)
     methods: dict[str, MethodSpec]
     stability_per_task: int = 1  # long rollouts per task, from its longest episodes
@@ -63,14 +63,19 @@ class EvaluateConfig:
     seed: int = 0
     chart_max_cases: int | None = None  # held-out rollouts on the speed-accuracy chart, for every method (the
     # Newton methods run on only these: they cost real simulation); None = all
+    episode_frames: int = 250  # steps of each held-out span's whole rollout from its first frame (capped by the span)
+    phase_starts: int = 4  # held-out rollouts per span from the first frames of its motion phases, spread over them
+    subject: str = "worldcontact"  # the method whose whole-episode ratios to the best baseline are summarised
 
     def validate(self) -> None:
-        for name in ("rollout_frames", "stability_frames", "stability_per_task"):
+        for name in ("rollout_frames", "stability_frames", "stability_per_task", "episode_frames"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         for name in ("penetration_depth_m", "contact_band_m", "divergence_strain", "divergence_penetration_pct"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        if self.phase_starts < 0:
+            raise ValueError(f"phase_starts must be >= 0, got {self.phase_starts}")
         if self.chart_max_cases is not None and self.chart_max_cases < 1:
             raise ValueError(f"chart_max_cases must be >= 1 or null (all), got {self.chart_max_cases}")
         if not self.methods:

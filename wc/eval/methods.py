@@ -5,7 +5,8 @@ case's scene with whatever the method needs of the case folded in (not timed), a
 case's frame 0 under the case's commanded actions (what the speed-accuracy chart times):
 
     LearnedMethod  a learned predictor (WorldContact, a baseline, zero motion, constant velocity) as LearnedDynamics,
-                   stepping the case's recorded link, held-object and environment poses (RecordedInputs)
+                   stepping the case's recorded link, held-object and environment poses (RecordedInputs); a
+                   model of past frames is given the case's recorded frames before its start
     NewtonMethod   the source simulator at one setting (wc.eval.newton_method): the simulator of the case's
                    collision scene, built and warmed up on first use
 """
@@ -45,7 +46,7 @@ class LearnedMethod:
 
     def dynamics(self, case: Case, dt: float) -> LearnedDynamics:
         inputs = RecordedInputs(case.actions, case.poses, case.layout.bodies)
-        return LearnedDynamics(self.predictor, case.layout, inputs, dt, self.device)
+        return LearnedDynamics(self.predictor, case.layout, inputs, dt, self.device, case.recorded_past())
 
 
 def load_method(spec: MethodSpec, train_cfg: TrainConfig, device: torch.device,

@@ -3,8 +3,14 @@ stability rollouts (reports/stability.csv + reports/stability.png).
 
 Held-out data: the store's test split; without one, the validation data training held out
 (wc.train.loop.prepare_data: val split, else its held-out part of the train episodes); the report says which.
-Every phase (wc.train.data.episode_phases) is rolled out autoregressively from its first frame under the
-recorded prescribed inputs for min(rollout_frames, phase length - 1) steps. Long rollouts take, per task,
+Every held-out span (a layout phase, wc.train.data.episode_phases, or a held-out block) is rolled out
+autoregressively under the recorded prescribed inputs from its first frame to its end (capped at episode_frames
+steps: the whole episode) and from up to phase_starts frames spread over its motion phases (approach, grasp, lift,
+hold, release, drop; rollout_frames steps each): wc.eval.rollout_plan. The report has every method's MSE over all
+of them (overall and per task), per motion phase and over the whole rollouts, and `whole_episode`: the subject's
+(evaluate.subject) mean and worst per-task ratio of the best baseline's whole-episode position MSE to its own
+(wc.eval.task_ratios), beside the pooled ratio, and its penetration there. A model of past frames (the particle
+baselines) is given the recorded frames of the span before its start frame. Long rollouts take, per task,
 the longest phases (test split, else every episode) for min(stability_frames, phase length - 1) steps.
 
 Methods come from params `evaluate.methods` (wc.eval.methods: each one is rolled out as `wc.dynamics.Dynamics`
@@ -13,7 +19,8 @@ listed under `skipped` in the report. "ground_truth" (the recorded frames) is sc
 penetration and strain floor of the data itself.
 
 The speed-accuracy chart (speed_accuracy.{csv,png}, report key `speed_accuracy`) compares every method on the
-same held-out rollouts: all of them, or `chart_max_cases` of them taking the tasks in turn. The Newton methods
+same held-out rollouts of rollout_frames steps from a span's first frame: every span's, or `chart_max_cases` spans'
+taking the tasks in turn. The Newton methods
 (kind newton: the source simulator at its reference and cheaper settings) cost real simulation, so they run on
 the chart's rollouts only and appear in the chart and its report block, not in `methods` (all held-out rollouts)
 nor in the long rollouts. Speed is the frame dt over the wall time per predicted step, rollout only: Newton's
@@ -24,7 +31,7 @@ untimed before the timed one (compilation, CUDA-graph capture).
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -37,11 +44,14 @@ from wc.data.store import TrajectoryStore
 from wc.devices import resolve_device
 from wc.eval.cases import Case, CaseReader, held_out_phases, long_phases
 from wc.eval.config import EvaluateConfig, MethodSpec
-from wc.eval.metrics import ErrorTally, finite_or_none, squared_error
-from wc.eval.penetration import PenetrationTally, cloth_signed_distance, penetrating_area_pct
+from wc.eval.metrics import squared_error
+from wc.eval.penetration import cloth_signed_distance, penetrating_area_pct
 from wc.eval.plots import SPEED_ACCURACY_HEADER, plot_speed_accuracy, plot_stability, speed_accuracy_rows
 from wc.eval.methods import LearnedMethod, Method, load_method, predict
 from wc.eval.newton_method import NewtonMethod
+from wc.eval.rollout_plan import CHART, plan_rollouts
+from wc.eval.scores import MethodScores
+from wc.eval.task_ratios import task_ratios
 from wc.model.predictor import WorldContactPredictor
 from wc.eval.stability import (CSV_HEADER, StabilityCurve, csv_rows, divergence_summary, first_divergence,
                               max_edge_strain)
@@ -56,6 +66,7 @@ from wc.train.data import Phase
 
 SECTIONS = ["evaluate", "scene", "model", "train", "sim"]
 GROUND_TRUTH = "ground_truth"
+REFERENCE_KINDS = ("baseline", "zero_motion", "constant_velocity")  # what the subject's whole-episode ratios compare
 
 
 def model_records(cfg: EvaluateConfig, methods: dict[str, Method]) -> dict[str, dict[str, Any]]:
@@ -87,39 +98,10 @@ def load_methods(cfg: EvaluateConfig, train_cfg: TrainConfig, tag_scale: float, 
     return methods, skipped
 
 
-@dataclass
-class MethodScores:
-    """A method's held-out errors and penetration (overall and per task) and its rollout time."""
-
-    errors: ErrorTally
-    depth_m: float
-    band_m: float
-    penetration: PenetrationTally = field(init=False)
-    task_penetration: dict[str, PenetrationTally] = field(default_factory=dict)
-    seconds: float = 0.0
-    steps: int = 0
-
-    def __post_init__(self) -> None:
-        self.penetration = PenetrationTally(self.depth_m, self.band_m)
-
-    def add(self, case: Case, x: np.ndarray, v: np.ndarray, signed_distance: np.ndarray) -> None:
-        """One rollout's predicted x, v (S, N, 3) and its cloth signed distances (S, N_cloth)."""
-        self.errors.add(case.task, x, v, case.x[1:], case.v[1:])
-        self.penetration.add(signed_distance, case.cloth_area)
-        task = self.task_penetration.setdefault(case.task, PenetrationTally(self.depth_m, self.band_m))
-        task.add(signed_distance, case.cloth_area)
-
-    @staticmethod
-    def _rates(tally: PenetrationTally) -> dict[str, float | None]:
-        return {"penetration_rate_pct": finite_or_none(tally.rate_pct),
-                "contact_penetration_rate_pct": finite_or_none(tally.contact_rate_pct)}
-
-    def summary(self) -> dict[str, Any]:
-        out = {**self.errors.summary(), **self._rates(self.penetration)}
-        for task, tally in self.task_penetration.items():
-            out["per_task"][task].update(self._rates(tally))
-        out["s_per_step"] = finite_or_none(self.seconds / self.steps) if self.steps else None
-        return out
+def past_frames(methods: dict[str, Method]) -> int:
+    """Recorded frames before a rollout's start that some method reads (a particle baseline's history - 1)."""
+    return max([getattr(m.predictor, "history", 1) - 1 for m in methods.values() if isinstance(m, LearnedMethod)],
+               default=0)
 
 
 def stability_curve(method: str, case: Case, x: np.ndarray, signed_distance: np.ndarray,
@@ -130,7 +112,7 @@ def stability_curve(method: str, case: Case, x: np.ndarray, signed_distance: np.
     penetration = penetrating_area_pct(signed_distance, case.cloth_area, cfg.penetration_depth_m)
     finite = np.isfinite(x).all(axis=(1, 2))
     step = first_divergence(finite, strain, penetration, cfg.divergence_strain, cfg.divergence_penetration_pct)
-    return StabilityCurve(method, case.task, case.phase.episode, case.phase.start, error,
+    return StabilityCurve(method, case.task, case.phase.episode, case.start, error,
                           penetration, strain, step)
 
 
@@ -149,7 +131,7 @@ def chart_phases(store: TrajectoryStore, phases: list[Phase], max_cases: int | N
 
 @dataclass
 class HeldOut:
-    """Held-out scores: `scores` over every rollout (not the Newton methods), `chart` over the chart's
+    """Held-out scores: `scores` over every scored rollout (not the Newton methods), `chart` over the chart's
     rollouts (every method), and the rollouts made (`rolled`, `charted`)."""
 
     scores: dict[str, MethodScores]
@@ -160,31 +142,44 @@ class HeldOut:
 
 def held_out_scores(reader: CaseReader, phases: list[Phase], methods: dict[str, Method],
                     cfg: EvaluateConfig, dt: float) -> HeldOut:
-    """Scores of the recorded data and every method over rollouts of up to rollout_frames steps from each
-    phase's first frame; the Newton methods roll out the chart's phases only."""
+    """Scores of the recorded data and every method over the held-out rollouts of `phases`
+    (wc.eval.rollout_plan); the Newton methods roll out the chart's rollouts only. A phase start at a span's first
+    frame is scored on the head of the span's whole rollout (the same frames), not rolled out (nor timed) again."""
     band = cfg.contact_band_m
 
     def tallies(names: list[str]) -> dict[str, MethodScores]:
-        return {m: MethodScores(ErrorTally(cfg.rollout_frames), cfg.penetration_depth_m, band) for m in names}
+        return {m: MethodScores(cfg.rollout_frames, cfg.episode_frames, cfg.penetration_depth_m, band) for m in names}
 
-    on_chart = set(chart_phases(reader.store, phases, cfg.chart_max_cases))
+    chart = set(chart_phases(reader.store, phases, cfg.chart_max_cases))
+    plan = plan_rollouts(reader.store, phases, cfg.rollout_frames, cfg.episode_frames, cfg.phase_starts, chart)
     newton = {n: isinstance(m, NewtonMethod) for n, m in methods.items()}
     out = HeldOut(tallies([GROUND_TRUTH, *(n for n in methods if not newton[n])]), tallies(list(methods)), [], [])
     warmed: set[str] = set()
-    for phase in tqdm(phases, desc="evaluate held-out", unit="rollout"):
-        if phase.stop - phase.start < 2:
-            continue
-        case = reader.case(phase, cfg.rollout_frames + 1)
-        rollout = {"episode": phase.episode, "task": case.task, "start_frame": phase.start, "steps": case.steps}
-        out.rolled.append(rollout)
-        charted = phase in on_chart
+    whole: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}  # the span's whole rollout: x, v, signed distance
+    for planned in tqdm(plan, desc="evaluate held-out", unit="rollout"):
+        case = reader.case(planned.span, planned.frames, planned.start)
+        rollout = {"episode": case.phase.episode, "task": case.task, "start_frame": case.start, "steps": case.steps,
+                   "label": planned.label}
+        charted, scored = planned.charted(chart, cfg.rollout_frames), planned.label != CHART
+        if scored:
+            out.rolled.append(rollout)
         if charted:
             out.charted.append(rollout)
-        truth_x, truth_v = case.x[1:].astype(np.float64), case.v[1:].astype(np.float64)
-        out.scores[GROUND_TRUTH].add(case, truth_x, truth_v,
-                                     cloth_signed_distance(case.scene, truth_x, case.link_poses[1:], band))
+        if scored:
+            truth_x, truth_v = case.x[1:].astype(np.float64), case.v[1:].astype(np.float64)
+            out.scores[GROUND_TRUTH].add(case, truth_x, truth_v,
+                                         cloth_signed_distance(case.scene, truth_x, case.link_poses[1:], band),
+                                         planned.label)
+        # a phase start at the span's first frame is the head of its whole rollout (autoregressive, deterministic)
+        reuse = planned.whole or (planned.start == planned.span.start and not charted)
+        if planned.whole:
+            whole = {}
         for name, method in methods.items():
             if newton[name] and not charted:
+                continue
+            if reuse and name in whole and len(whole[name][0]) >= case.steps:
+                x, v, signed_distance = (a[:case.steps] for a in whole[name])
+                out.scores[name].add(case, x, v, signed_distance, planned.label)
                 continue
             dynamics = method.dynamics(case, dt)  # Newton: built, compiled, warmed up on first use; not timed
             if charted and not newton[name] and name not in warmed:  # the first charted rollout once untimed:
@@ -194,10 +189,12 @@ def held_out_scores(reader: CaseReader, phases: list[Phase], methods: dict[str, 
             x, v = predict(dynamics, case)
             seconds = time.perf_counter() - t0
             signed_distance = cloth_signed_distance(case.scene, x, case.link_poses[1:], band)
-            for table in ([out.chart] if charted else []) + ([] if newton[name] else [out.scores]):
+            if planned.whole:
+                whole[name] = (x, v, signed_distance)
+            for table in ([out.chart] if charted else []) + ([out.scores] if scored and not newton[name] else []):
                 table[name].seconds += seconds
                 table[name].steps += case.steps
-                table[name].add(case, x, v, signed_distance)
+                table[name].add(case, x, v, signed_distance, planned.label)
     return out
 
 
@@ -216,6 +213,20 @@ def stability_curves(reader: CaseReader, phases: list[Phase], methods: dict[str,
             sd = cloth_signed_distance(case.scene, x, case.link_poses[1:], cfg.contact_band_m)
             curves.append(stability_curve(name, case, x, sd, cfg))
     return curves
+
+
+def whole_episode(summaries: dict[str, dict[str, Any]], cfg: EvaluateConfig) -> dict[str, Any] | None:
+    """The subject's whole-episode ratios against every evaluated baseline and reference (wc.eval.task_ratios),
+    with its pooled MSE and penetration over those rollouts; None when the subject or every baseline is missing."""
+    baselines = [m for m in summaries if cfg.methods[m].kind in REFERENCE_KINDS]
+    if cfg.subject not in summaries or not baselines:
+        return None
+    whole = {m: summaries[m]["whole_episode"] for m in [cfg.subject, *baselines]}
+    per_task = {m: {t: row["position_mse_m2"] for t, row in w["per_task"].items()} for m, w in whole.items()}
+    pooled = {m: w["position_mse_m2"] for m, w in whole.items()}
+    return {"subject": cfg.subject, "baselines": baselines, **task_ratios(per_task, pooled, cfg.subject, baselines),
+            "penetration_pct": whole[cfg.subject]["penetration_rate_pct"],
+            "subject_position_mse_m2": pooled[cfg.subject], "rollouts": whole[cfg.subject]["rollouts"]}
 
 
 def newton_setting(spec: MethodSpec, sim_cfg: SimConfig) -> dict[str, Any]:
@@ -244,7 +255,7 @@ def evaluate(params: dict[str, Any], store_path: str | Path = EVALUATE["store"],
     store = TrajectoryStore(store_path)
     dt = float(store.dt)
     methods, skipped = load_methods(cfg, train_cfg, model_cfg.tag_scale, device, scene_cfg, sim_cfg)
-    reader = CaseReader(store, scene_cfg, model_cfg.tag_scale, device)
+    reader = CaseReader(store, scene_cfg, model_cfg.tag_scale, device, past_frames(methods))
 
     held, held_source = held_out_phases(store, train_cfg)
     if not held:
@@ -267,7 +278,9 @@ def evaluate(params: dict[str, Any], store_path: str | Path = EVALUATE["store"],
         "methods": summaries,
         "ground_truth": {k: ground_truth[k] for k in ("penetration_rate_pct", "contact_penetration_rate_pct")},
         "skipped": skipped,
+        "whole_episode": whole_episode(summaries, cfg),
         "held_out": {"source": held_source, "rollouts": len(held_out.rolled), "rollout_frames": cfg.rollout_frames,
+                     "episode_frames": cfg.episode_frames, "phase_starts": cfg.phase_starts,
                      "phases": held_out.rolled},
         "speed_accuracy": {"rollouts": len(held_out.charted), "chart_max_cases": cfg.chart_max_cases,
                            "phases": held_out.charted, "methods": chart,
@@ -305,4 +318,9 @@ def evaluate_summary(r: dict[str, Any]) -> str:
                      f"(contact {fmt(m.get('contact_penetration_rate_pct'), '.2f')} %)  "
                      f"diverged {div.get('diverged', 0)}/{div.get('rollouts', 0)} long rollouts")
     lines += [f"  {name:28s} skipped: {why}" for name, why in r["skipped"].items()]
+    w = r.get("whole_episode")
+    if w:
+        lines.append(f"  whole episodes: best baseline / {w['subject']} position MSE {fmt(w['mean_task_ratio'], '.2f')}x "
+                     f"(mean over tasks; worst task {fmt(w['worst_task_ratio'], '.2f')}x, pooled "
+                     f"{fmt(w['pooled_ratio'], '.2f')}x), penetration {fmt(w['penetration_pct'], '.2f')} %")
     return "\n".join(lines)

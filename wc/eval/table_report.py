@@ -99,6 +99,35 @@ def _best_baseline(methods: dict[str, dict[str, Any]]) -> str | None:
     return min(scored, key=lambda b: methods[b]["position_mse_m2"]) if scored else None
 
 
+def whole_episode_markdown(metrics: dict[str, Any]) -> list[str]:
+    """Lines of the whole-episode section: the per-task ratio summary, its per-task rows and the per-phase MSEs
+    (none for a report made before evaluate had them)."""
+    summary, methods = metrics.get("whole_episode"), metrics["methods"]
+    if not summary:
+        return []
+    pen = summary["penetration_pct"]
+    mean = summary["mean_task_ratio"]
+    lines = ["", f"## Whole held-out episodes ({summary['rollouts']} rollouts of up to "
+                 f"{metrics['held_out']['episode_frames']} steps from each span's first frame)", "",
+             f"- {summary['subject']}: the best of {', '.join(summary['baselines'])} has {_fmt(mean, '.1f')}x its "
+             f"position MSE as the mean over tasks of per-task ratios (goal >= {MARGIN_GOAL:g}x: "
+             f"{'met' if mean is not None and mean >= MARGIN_GOAL else 'not met'}), {_fmt(summary['worst_task_ratio'], '.2f')}x "
+             f"on the worst task, {_fmt(summary['pooled_ratio'], '.1f')}x pooled over tasks",
+             f"- penetration {_fmt(pen, '.2f')} % (goal <= {PENETRATION_GOAL_PCT} %: "
+             f"{'met' if pen is not None and pen <= PENETRATION_GOAL_PCT else 'not met'})", "",
+             f"| task | best baseline | its position MSE m² | {summary['subject']} m² | ratio |", "|---|---|---|---|---|"]
+    lines += [f"| {task} | {row['best_baseline'] or '-'} | {_fmt(row['best_baseline_mse_m2'])} | "
+              f"{_fmt(row['subject_mse_m2'])} | {_fmt(row['ratio'], '.2f')} |" for task, row in summary["per_task"].items()]
+    phases = list(dict.fromkeys(p for m in methods.values() for p in m.get("per_phase", {})))
+    if phases:
+        lines += ["", f"## Position MSE per motion phase (m², {metrics['held_out']['rollout_frames']}-step rollouts from "
+                      "each phase's first frame)", "", "| method | " + " | ".join(phases) + " |",
+                  "|---|" + "---|" * len(phases)]
+        lines += [f"| {name} | " + " | ".join(_fmt(m["per_phase"].get(p, {}).get("position_mse_m2")) for p in phases)
+                  + " |" for name, m in methods.items()]
+    return lines
+
+
 def table_markdown(metrics: dict[str, Any], trainings: dict[str, dict[str, Any]], title: str,
                    rows: tuple[list[list[object]], list[list[object]]]) -> str:
     """The report: Table 1 with the paper's figures, per-task position MSE, training budgets, speed (`rows`, from
@@ -132,6 +161,7 @@ def table_markdown(metrics: dict[str, Any], trainings: dict[str, dict[str, Any]]
               "|---|" + "---|" * len(tasks)]
     lines += [f"| {name} | " + " | ".join(_fmt(m["per_task"].get(t, {}).get("position_mse_m2")) for t in tasks) + " |"
               for name, m in methods.items()]
+    lines += whole_episode_markdown(metrics)
     if trainings:
         lines += ["", "## Training budget (each learned method on the same train split)", "",
                   "| method | steps | wall min | s/step (median) | stopped by | best validation loss |", "|---|---|---|---|---|---|"]

@@ -6,6 +6,9 @@ layout under prescribed body poses (the `Predictor` interface every learned meth
     layout: wc.model.layout.SceneLayout (objects, rest topology, prescribed sample sets)
     x0, v0: (B, N, 3) torch tensors, m and m/s;  poses: (B, T, P, 7) body poses of frames 0..T-1
     returns x, v: (B, T-1, N, 3), frames 1..T-1 (non-finite values are allowed: a diverged rollout)
+
+A predictor that reads past frames (a `history` attribute > 1: the particle baselines) also takes `past`, the
+recorded frames before frame 0 (wc.model.past_frames.PastFrames), where there are any.
 """
 
 from __future__ import annotations

@@ -53,6 +53,15 @@ def episode_phases(store: TrajectoryStore, eid: str) -> list[Phase]:
     return [Phase(eid, 0, release + 1, before), Phase(eid, release, frames, after)]
 
 
+def layout_phase_start(store: TrajectoryStore, phase: Phase) -> int:
+    """The first frame of the episode's phase (episode_phases) of `phase`'s layout that holds it: a held-out block
+    is part of one. The frames from there to `phase.start` are recorded in the same layout."""
+    for whole in episode_phases(store, phase.episode):
+        if whole.layout == phase.layout and whole.start <= phase.start < whole.stop:
+            return whole.start
+    return phase.start
+
+
 def phases_of(store: TrajectoryStore, split: str) -> list[Phase]:
     """Phases of every episode in `split`."""
     return [p for eid in store.episodes_where(split=split) for p in episode_phases(store, eid)]

@@ -25,3 +25,14 @@ def noisy_state(x: torch.Tensor, v: torch.Tensor, std_m: float, dt: float) -> tu
     previous = half * torch.randn_like(x)
     step = half * torch.randn_like(x)
     return x + previous + step, v + step / dt
+
+
+def noisy_history(x: torch.Tensor, std_m: float) -> torch.Tensor:
+    """Observed frames x (B, H, N, 3) [m] with a random walk over the H frames whose last frame has noise std `std_m`
+    [m] (each frame's step N(0, std²/H)); unchanged for std 0. For models that read past positions (the baselines)."""
+    if std_m < 0:
+        raise ValueError(f"input noise std must be >= 0 m, got {std_m}")
+    if std_m == 0:
+        return x
+    steps = std_m / math.sqrt(x.shape[1]) * torch.randn_like(x)
+    return x + steps.cumsum(1)
