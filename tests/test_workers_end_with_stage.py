@@ -130,6 +130,24 @@ def test_the_reaper_kills_the_descendants_of_a_killed_process():
     assert _kill_and_wait(parent, tree) == []  # the sleepers and the reaper, once it has killed them
 
 
+def test_the_reaper_kills_a_process_orphaned_before_it_looked():
+    """A grandchild whose parent exits at once (a daemon's double start) is re-parented to init before the watcher's
+    next look; it still dies with the block's process, found by the token it inherited."""
+    parent = subprocess.Popen(_python(
+        "import subprocess, sys, time\n"
+        "from wc.reaper import reaping_descendants\n"
+        "with reaping_descendants():\n"
+        "    child = subprocess.run([sys.executable, '-c', 'import subprocess, sys; "
+        "print(subprocess.Popen([sys.executable, \"-c\", \"import time; time.sleep(600)\"], "
+        "stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL).pid)'], "
+        "capture_output=True, text=True)\n"
+        "    print(child.stdout.strip(), flush=True)\n"
+        "    time.sleep(600)\n"), cwd=ROOT, stdout=subprocess.PIPE, text=True)
+    orphan = psutil.Process(int(parent.stdout.readline()))
+    assert orphan.ppid() != parent.pid  # not the block's descendant any more
+    assert _kill_and_wait(parent, [orphan]) == []
+
+
 @pytest.mark.slow
 def test_simulate_agent_workers_end_with_a_killed_stage(tmp_path):
     """simulate with 2 agent worker processes, killed -9 while they work: no worker outlives it."""
