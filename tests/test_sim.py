@@ -3,10 +3,13 @@
 Slow (Newton kernels compile on first use, ~1-2 min; then ~1-2 min of simulation).
 """
 
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 
-from tests.conftest import load_params
+from tests.conftest import ROOT, load_params
 from wc.config import load_section
 from wc.dynamics import ObjectState
 from wc.scene.config import SceneConfig
@@ -113,3 +116,16 @@ def test_batched_worlds_match_single_world_runs(setup):
         np.testing.assert_allclose(batched[w][0], alone[0], atol=5e-4)  # m; contact order differs per batch
         np.testing.assert_allclose(batched[w][1], alone[1], atol=0.03)  # m/s at the landing; solver order differs
     assert not np.allclose(batched[0][0][-1], batched[1][0][-1])
+
+
+def test_newton_and_the_renderer_define_their_kernels_without_backward_passes():
+    """Importing wc's Newton users first (a fresh process, as a stage starts) gives Newton's and wc's kernel modules
+    enable_backward False: half the cold CPU compile, and nothing here differentiates through warp."""
+    code = ("import wc.render.renderer, wc.sim.newton_sim, wc.validate.cloth_bvh, warp as wp\n"
+            "import newton._src.solvers.vbd.solver_vbd as vbd, newton._src.sensors.sensor_camera as cam\n"
+            "modules = {k.module.name: k.module.options['enable_backward'] for m in (vbd, cam, wc.validate.cloth_bvh)\n"
+            "           for k in vars(m).values() if isinstance(k, wp.Kernel)}\n"
+            "print(len(modules), sorted(name for name, backward in modules.items() if backward))\n")
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=True).stdout
+    count, with_backward = out.strip().split(" ", 1)
+    assert int(count) >= 3 and with_backward == "[]"

@@ -5,6 +5,7 @@ from __future__ import annotations
 import re
 
 import torch
+import wc.warp_settings  # noqa: F401  (first: kernels take warp's settings when defined)
 import warp as wp
 
 _DEVICE = re.compile(r"^(cpu|auto|cuda(:\d+)?)$")

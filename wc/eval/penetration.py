@@ -16,6 +16,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import wc.warp_settings  # noqa: F401  (first: kernels take warp's settings when defined)
 import warp as wp
 
 from wc.scene.scene import Scene

@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 
 import torch
+import wc.warp_settings  # noqa: F401  (first: kernels take warp's settings when defined)
 import warp as wp
 from torch import Tensor
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 import time
 from collections.abc import Mapping
 
+import wc.warp_settings  # noqa: F401  (first: kernels take warp's settings when defined)
 import newton
 import numpy as np
 import warp as wp

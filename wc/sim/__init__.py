@@ -1,6 +1,3 @@
-"""Newton source simulator (warp's per-kernel load chatter off; warnings still shown)."""
+"""Newton source simulator (warp's settings from wc.warp_settings, applied before Newton defines its kernels)."""
 
-import warp as wp
-
-wp.config.quiet = True
-wp.config.log_level = wp.LOG_WARNING
+import wc.warp_settings  # noqa: F401

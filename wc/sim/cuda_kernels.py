@@ -14,6 +14,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+import wc.warp_settings  # noqa: F401  (first: kernels take warp's settings when defined)
 import warp as wp
 import warp._src.context as warp_context
 

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 import torch
+import wc.warp_settings  # noqa: F401  (first: kernels take warp's settings when defined)
 import warp as wp
 
 FAR = wp.constant(1.0e6)  # where the bounds of a non-finite element are parked [m]
