@@ -4,6 +4,7 @@ rollout, divergence on a planted blow-up, and the `evaluate` stage end to end on
 from __future__ import annotations
 
 import copy
+import dataclasses
 import csv
 import json
 from pathlib import Path
@@ -14,7 +15,7 @@ import pytest
 import torch
 import trimesh
 
-from wc.eval.stage import evaluate
+from wc.eval.stage import evaluate, evaluate_summary
 from tests.conftest import load_params
 from tests.synthetic_store import write_synthetic_store
 from wc.config import ParamsError, load_section
@@ -27,6 +28,7 @@ from wc.baselines import build_baseline, save_baseline
 from wc.baselines.config import BaselinesConfig
 from wc.dynamics import Dynamics, ObjectState
 from wc.eval.cases import CaseReader, held_out_phases
+from wc.eval.map_back import MapBackTally, mapped_back
 from wc.eval.config import MethodSpec
 from wc.eval.methods import LearnedMethod
 from wc.eval.newton_method import NewtonMethod, Replay
@@ -269,6 +271,41 @@ def test_every_method_is_dynamics_of_a_case_and_steps_as_it_rolls_out(tmp_path, 
             dynamics.rollout(initial, case.actions + np.float32(0.01))
 
 
+def test_the_map_back_floor_is_zero_at_every_vertex_and_pools_what_fewer_particles_miss(store_path, params):
+    """A particle baseline's map-back floor: the recorded frames rebuilt from their own particles. Every vertex a
+    particle: zero; 20 particles: the pooled MSE of the rebuilt frames against the recorded ones, by hand, above zero
+    on a deforming bag."""
+    store = TrajectoryStore(store_path)
+    reader = CaseReader(store, load_section(params, "scene", SceneConfig), 0.02, torch.device("cpu"))
+    case = reader.case(episode_phases(store, "ep_000003")[0], 4)  # the hand-off: a bag and a held sphere
+    bent = np.random.default_rng(0).normal(0.0, 0.002, case.x.shape).astype(case.x.dtype)  # the synthetic motion
+    bent[0] = 0.0  # is rigid, which any particle map rebuilds exactly: bend it from frame 1 on
+    case = dataclasses.replace(case, x=case.x + bent)
+    n = case.x.shape[1]
+    base = load_section(params, "baselines", BaselinesConfig).models["robocraft"]
+    tally = MapBackTally(4)
+    for name, particles in (("every_vertex", 10_000), ("twenty", 20)):
+        model = build_baseline("robocraft", dataclasses.replace(base, particles=particles))
+        tally.add(name, LearnedMethod(model, torch.device("cpu")), case)
+    tally.add("zero_motion", LearnedMethod(ZeroMotion(), torch.device("cpu")), case)  # no particles: no floor
+    floor = tally.summary()
+    assert set(floor) == {"every_vertex", "twenty"}
+    assert floor["every_vertex"]["position_mse_m2"] == 0.0 and floor["every_vertex"]["layouts"] == [
+        {"particles": n, "vertices": n}]
+    pmap = build_baseline("robocraft", dataclasses.replace(base, particles=20)).scene(case.layout).particles
+    x = case.x.astype(np.float64)
+    rebuilt = mapped_back(pmap, x)
+    np.testing.assert_array_equal(rebuilt[:, pmap.vertices.numpy()], x[1:, pmap.vertices.numpy()])  # exact there
+    assert floor["twenty"]["position_mse_m2"] == pytest.approx(np.square(rebuilt - x[1:]).sum(-1).mean(), rel=1e-9)
+    assert floor["twenty"]["position_mse_m2"] > 0 and floor["twenty"]["per_task"] == {
+        case.task: floor["twenty"]["position_mse_m2"]}
+    with pytest.raises(ValueError, match="vertices"):
+        mapped_back(pmap, x[:, :-1])
+    printed = evaluate_summary({"held_out": {"rollouts": 1, "source": "test split"}, "wall_s": 1.0, "methods": {},
+                                "skipped": {}, "map_back": floor}).splitlines()
+    assert any("twenty" in line and "map-back floor" in line and f"20 of {n} vertices" in line for line in printed)
+
+
 @pytest.mark.slow
 def test_evaluate_stage_end_to_end(tmp_path, store_path, params):
     models = tmp_path / "models"
@@ -280,6 +317,7 @@ def test_evaluate_stage_end_to_end(tmp_path, store_path, params):
     assert json.loads((out / "metrics.json").read_text()) == json.loads(json.dumps(r))
     assert set(r["methods"]) == {"worldcontact", "zero_motion", "constant_velocity"}
     assert "robocraft" in r["skipped"] and "not found" in r["skipped"]["robocraft"]
+    assert r["map_back"] == {}  # no particle baseline was evaluated
     assert r["held_out"]["source"] == "test split"
     assert r["kinds"] == {"worldcontact": "worldcontact", "zero_motion": "zero_motion",
                           "constant_velocity": "constant_velocity"}

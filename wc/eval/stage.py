@@ -44,6 +44,7 @@ from wc.data.store import TrajectoryStore
 from wc.devices import resolve_device
 from wc.eval.cases import Case, CaseReader, held_out_phases, long_phases
 from wc.eval.config import EvaluateConfig, MethodSpec
+from wc.eval.map_back import MapBackTally
 from wc.eval.metrics import squared_error
 from wc.eval.penetration import cloth_signed_distance, penetrating_area_pct
 from wc.eval.plots import SPEED_ACCURACY_HEADER, plot_speed_accuracy, plot_stability, speed_accuracy_rows
@@ -132,12 +133,14 @@ def chart_phases(store: TrajectoryStore, phases: list[Phase], max_cases: int | N
 @dataclass
 class HeldOut:
     """Held-out scores: `scores` over every scored rollout (not the Newton methods), `chart` over the chart's
-    rollouts (every method), and the rollouts made (`rolled`, `charted`)."""
+    rollouts (every method), the rollouts made (`rolled`, `charted`), and the particle baselines' map-back floor
+    over the scored rollouts' recorded frames (`map_back`, wc.eval.map_back)."""
 
     scores: dict[str, MethodScores]
     chart: dict[str, MethodScores]
     rolled: list[dict[str, Any]]
     charted: list[dict[str, Any]]
+    map_back: MapBackTally
 
 
 def held_out_scores(reader: CaseReader, phases: list[Phase], methods: dict[str, Method],
@@ -153,7 +156,8 @@ def held_out_scores(reader: CaseReader, phases: list[Phase], methods: dict[str, 
     chart = set(chart_phases(reader.store, phases, cfg.chart_max_cases))
     plan = plan_rollouts(reader.store, phases, cfg.rollout_frames, cfg.episode_frames, cfg.phase_starts, chart)
     newton = {n: isinstance(m, NewtonMethod) for n, m in methods.items()}
-    out = HeldOut(tallies([GROUND_TRUTH, *(n for n in methods if not newton[n])]), tallies(list(methods)), [], [])
+    out = HeldOut(tallies([GROUND_TRUTH, *(n for n in methods if not newton[n])]), tallies(list(methods)), [], [],
+                  MapBackTally(max(cfg.rollout_frames, cfg.episode_frames)))
     warmed: set[str] = set()
     whole: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}  # the span's whole rollout: x, v, signed distance
     for planned in tqdm(plan, desc="evaluate held-out", unit="rollout"):
@@ -170,6 +174,8 @@ def held_out_scores(reader: CaseReader, phases: list[Phase], methods: dict[str, 
             out.scores[GROUND_TRUTH].add(case, truth_x, truth_v,
                                          cloth_signed_distance(case.scene, truth_x, case.link_poses[1:], band),
                                          planned.label)
+            for name, method in methods.items():
+                out.map_back.add(name, method, case)
         # a phase start at the span's first frame is the head of its whole rollout (autoregressive, deterministic)
         reuse = planned.whole or (planned.start == planned.span.start and not charted)
         if planned.whole:
@@ -279,6 +285,7 @@ def evaluate(params: dict[str, Any], store_path: str | Path = EVALUATE["store"],
         "ground_truth": {k: ground_truth[k] for k in ("penetration_rate_pct", "contact_penetration_rate_pct")},
         "skipped": skipped,
         "whole_episode": whole_episode(summaries, cfg),
+        "map_back": held_out.map_back.summary(),
         "held_out": {"source": held_source, "rollouts": len(held_out.rolled), "rollout_frames": cfg.rollout_frames,
                      "episode_frames": cfg.episode_frames, "phase_starts": cfg.phase_starts,
                      "phases": held_out.rolled},
@@ -317,6 +324,10 @@ def evaluate_summary(r: dict[str, Any]) -> str:
                      f"penetration {fmt(m.get('penetration_rate_pct'), '.2f')} % "
                      f"(contact {fmt(m.get('contact_penetration_rate_pct'), '.2f')} %)  "
                      f"diverged {div.get('diverged', 0)}/{div.get('rollouts', 0)} long rollouts")
+    lines += [f"  {name:28s} map-back floor {fmt(m['position_mse_m2'], '.3e')} m² (perfect particles: "
+              f"{', '.join(str(size['particles']) for size in m['layouts'])} of "
+              f"{', '.join(str(size['vertices']) for size in m['layouts'])} vertices)"
+              for name, m in r.get("map_back", {}).items()]
     lines += [f"  {name:28s} skipped: {why}" for name, why in r["skipped"].items()]
     w = r.get("whole_episode")
     if w:
