@@ -9,13 +9,11 @@ frames as the episode has.
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import av
 import numpy as np
-import pyarrow as pa
-import pyarrow.parquet as pq
+from lerobot.datasets import LeRobotDatasetMetadata
 
 
 def _frame_times(video: Path) -> np.ndarray:
@@ -26,20 +24,16 @@ def _frame_times(video: Path) -> np.ndarray:
 
 def missing_video_frames(root: str | Path) -> list[str]:
     """One line per (episode, camera) whose span of its video file does not decode to the episode's frame count, for
-    the LeRobot v3 dataset at `root`; [] when every frame is there."""
+    the LeRobot v3 dataset at `root` (read through lerobot's metadata); [] when every frame is there."""
     root = Path(root)
-    info = json.loads((root / "meta" / "info.json").read_text())
-    fps = float(info["fps"])
-    keys = [k for k, f in info["features"].items() if f.get("dtype") == "video"]
-    parts = sorted((root / "meta" / "episodes").rglob("*.parquet"))
-    episodes = pa.concat_tables([pq.read_table(p) for p in parts]).to_pylist() if parts else []
-    half = 0.5 / fps
+    meta = LeRobotDatasetMetadata(f"local/{root.name}", root=root)
+    half = 0.5 / float(meta.fps)
     times: dict[Path, np.ndarray] = {}
     problems = []
-    for ep in episodes:
-        for key in keys:
-            video = root / info["video_path"].format(video_key=key, chunk_index=ep[f"videos/{key}/chunk_index"],
-                                                     file_index=ep[f"videos/{key}/file_index"])
+    for index in range(meta.total_episodes):
+        ep = meta.episodes[index]
+        for key in meta.video_keys:
+            video = root / meta.get_video_file_path(index, key)
             if video not in times:
                 times[video] = _frame_times(video) if video.is_file() else np.zeros(0)
             t = times[video]
