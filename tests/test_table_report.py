@@ -114,6 +114,12 @@ def test_report_shows_the_whole_episode_ratios_and_the_phases(tmp_path, metrics)
     assert "0.80x on the worst task, 20.6x pooled over tasks" in text
     assert "| lift | robocraft | 1.60e-05 | 2.00e-05 | 0.80 |" in text  # a task a baseline wins is shown
     assert "| robocraft | 2.00e-06 | 2.00e-05 |" in text.split("per motion phase")[1]
+    assert "Map-back floor" not in text  # no particle baseline's floor measured: no section
+    metrics["map_back"] = {"robocraft": {"position_mse_m2": 5e-5, "per_task": {},
+                                         "layouts": [{"particles": 100, "vertices": 306}]}}
+    (tmp_path / "metrics.json").write_text(json.dumps(metrics))
+    main(["--metrics", str(tmp_path / "metrics.json"), "--out", str(tmp_path / "t.md")])
+    assert "| robocraft | 100 / 306 | 5.00e-05 | 2.00e-04 | 25.0 % |" in (tmp_path / "t.md").read_text()
     del metrics["whole_episode"]  # a report from before whole episodes: no section
     (tmp_path / "metrics.json").write_text(json.dumps(metrics))
     main(["--metrics", str(tmp_path / "metrics.json"), "--out", str(tmp_path / "t.md")])

@@ -128,6 +128,24 @@ def whole_episode_markdown(metrics: dict[str, Any]) -> list[str]:
     return lines
 
 
+def map_back_markdown(metrics: dict[str, Any]) -> list[str]:
+    """Lines of the map-back section: each particle baseline's floor (its error with every particle right) beside its
+    held-out position MSE (none for a report made before evaluate measured it)."""
+    floors = metrics.get("map_back")
+    if not floors:
+        return []
+    lines = ["", "## Map-back floor (the recorded held-out frames rebuilt from each baseline's own particles)", "",
+             "| baseline | particles / vertices | floor position MSE m² | its held-out position MSE m² | floor share |",
+             "|---|---|---|---|---|"]
+    for name, floor in floors.items():
+        mse = metrics["methods"].get(name, {}).get("position_mse_m2")
+        share = floor["position_mse_m2"] / mse if mse and floor["position_mse_m2"] is not None else None
+        sizes = ", ".join(f"{size['particles']} / {size['vertices']}" for size in floor["layouts"])
+        lines.append(f"| {name} | {sizes} | {_fmt(floor['position_mse_m2'])} | {_fmt(mse)} | "
+                     f"{_fmt(share * 100 if share is not None else None, '.1f')} % |")
+    return lines
+
+
 def table_markdown(metrics: dict[str, Any], trainings: dict[str, dict[str, Any]], title: str,
                    rows: tuple[list[list[object]], list[list[object]]]) -> str:
     """The report: Table 1 with the paper's figures, per-task position MSE, training budgets, speed (`rows`, from
@@ -162,6 +180,7 @@ def table_markdown(metrics: dict[str, Any], trainings: dict[str, dict[str, Any]]
     lines += [f"| {name} | " + " | ".join(_fmt(m["per_task"].get(t, {}).get("position_mse_m2")) for t in tasks) + " |"
               for name, m in methods.items()]
     lines += whole_episode_markdown(metrics)
+    lines += map_back_markdown(metrics)
     if trainings:
         lines += ["", "## Training budget (each learned method on the same train split)", "",
                   "| method | steps | wall min | s/step (median) | stopped by | best validation loss |", "|---|---|---|---|---|---|"]
