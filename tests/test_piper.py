@@ -208,3 +208,27 @@ def test_capsule_samples():
     np.testing.assert_allclose(p - axis_point, 0.03 * n, atol=1e-6)
     with pytest.raises(ValueError, match="unknown links"):
         link_surface_samples(0.01, ["gripper"])
+
+
+def test_the_geometric_tool_jacobian_matches_autograd():
+    """tool_jacobian's dp/dq and dR/dq against reverse-mode autograd of tool_frame, at random postures (float64)."""
+    from torch.func import jacrev, vmap
+
+    from wc.scene.ik import tool_jacobian
+
+    gen = torch.Generator().manual_seed(3)
+    q = torch.tensor(P.HOME_Q, dtype=torch.float64) + 0.5 * torch.randn(6, 6, generator=gen, dtype=torch.float64)
+    base = torch.tensor([0.1, -0.2, 0.05, 0.0, 0.0, 0.3826834, 0.9238795], dtype=torch.float64)
+    opening = torch.full((6,), 0.03, dtype=torch.float64)
+    pos, rot, d_pos, d_rot = tool_jacobian(q, opening, base)
+
+    def frame(qq: torch.Tensor, dd: torch.Tensor) -> torch.Tensor:
+        p, r, _ = P.tool_frame(qq, dd, base)
+        return torch.cat((p, r.reshape(9)))
+
+    expected = vmap(jacrev(frame))(q, opening)  # [6, 12, 6]
+    reference = vmap(frame)(q, opening)
+    torch.testing.assert_close(torch.cat((pos, rot.reshape(6, 9)), dim=-1), reference)
+    torch.testing.assert_close(d_pos, expected[:, :3], atol=1e-6, rtol=0)
+    torch.testing.assert_close(d_rot.reshape(6, 9, 6), expected[:, 3:], atol=1e-6, rtol=0)
+    assert expected.abs().amax() > 0.1  # the derivatives compared are not all near zero

@@ -5,9 +5,26 @@ from __future__ import annotations
 import math
 
 import torch
-from torch.func import jacrev, vmap
 
-from wc.scene.piper import JOINT_LIMITS, clamp_to_limits, tool_frame
+from wc.scene.piper import AXES, JOINT_LIMITS, LINK_NAMES, TCP_IN_LINK6_M, chain_frames, clamp_to_limits
+
+_LINK6 = LINK_NAMES.index("link6")
+
+
+def tool_jacobian(q: torch.Tensor, opening: torch.Tensor | float, base_pose: torch.Tensor
+                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The TCP's position [B, 3] and rotation [B, 3, 3] (piper.tool_frame) and their derivatives by the six arm joints,
+    from the chain's frames (a serial chain of revolute joints): dp/dq_i = a_i x (p - o_i) [B, 3, 6] and
+    dR/dq_i = [a_i]x R [B, 3, 3, 6], with a_i and o_i joint i's world axis and origin. The geometric Jacobian: one
+    forward pass, no autograd."""
+    pos, rot, _ = chain_frames(q, opening, base_pose)  # [B, 8, 3], [B, 8, 3, 3]
+    tcp = torch.as_tensor(TCP_IN_LINK6_M, device=q.device, dtype=q.dtype)
+    p = pos[:, _LINK6] + rot[:, _LINK6] @ tcp
+    r = rot[:, _LINK6]
+    axes = (rot[:, :6] @ torch.as_tensor(AXES[:6], device=q.device, dtype=q.dtype)[..., None])[..., 0]  # [B, 6, 3]
+    d_pos = torch.linalg.cross(axes, p[:, None] - pos[:, :6], dim=-1).transpose(1, 2)
+    d_rot = torch.linalg.cross(axes[:, :, :, None].expand(-1, -1, -1, 3), r[:, None].expand(-1, 6, -1, -1), dim=2)
+    return p, r, d_pos, d_rot.permute(0, 2, 3, 1)
 
 
 def solve_tool_ik(
@@ -28,7 +45,7 @@ def solve_tool_ik(
     target_rot's columns are the tool axes in the world (x, y = pad separation, z = approach).
     Each iteration takes a damped least-squares (Levenberg) step on the residual
     [p - p_t, rot_weight_m * (R - R_t) / sqrt(2)] (the rotation part is ~ rot_weight_m * angle),
-    with the Jacobian from reverse-mode autograd (torch.func.jacrev, vmapped over the batch), each
+    with the geometric Jacobian (tool_jacobian), each
     joint step capped at max_step_rad, then clamps q to the joint limits. Stops early once every sample is within both tolerances.
     base_pose: [7] or [B, 7]; opening (m): float or [B] (does not move the TCP).
     Returns q [B, 6], position error [B] (m) and rotation error [B] (rad); the latter from
@@ -47,22 +64,21 @@ def solve_tool_ik(
     opening = torch.as_tensor(opening, device=dev, dtype=dt).expand(batch)
     scale = rot_weight_m / math.sqrt(2.0)
 
-    def residual(q, p_t, r_t, b, d):
-        pos, rot, _ = tool_frame(q, d, b)
-        r = torch.cat((pos - p_t, scale * (rot - r_t).reshape(9)))
-        return r, r
+    def residual(q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """r [B, 12] and dr/dq [B, 12, 6]."""
+        pos, rot, d_pos, d_rot = tool_jacobian(q, opening, base)
+        r = torch.cat((pos - target_pos, scale * (rot - target_rot).reshape(batch, 9)), dim=-1)
+        return r, torch.cat((d_pos, scale * d_rot.reshape(batch, 9, 6)), dim=1)
 
     def errors(r: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         chord = torch.linalg.vector_norm(r[:, 3:], dim=-1) / (scale * 2.0 * math.sqrt(2.0))
         return torch.linalg.vector_norm(r[:, :3], dim=-1), 2.0 * torch.asin(chord.clamp(max=1.0))
 
-    jac = vmap(jacrev(residual, has_aux=True))
-    args = (target_pos, target_rot, base, opening)
     eye = torch.eye(6, device=dev, dtype=dt)
     lower, upper = torch.as_tensor(JOINT_LIMITS, device=dev, dtype=dt).unbind(-1)
     q = clamp_to_limits(q_init.detach().clone())
     for _ in range(iterations):
-        J, r = jac(q, *args)  # J [B, 12, 6], r [B, 12]
+        r, J = residual(q)
         pos_err, rot_err = errors(r)
         if bool(((pos_err < pos_tol_m) & (rot_err < rot_tol_rad)).all()):
             return q, pos_err, rot_err
@@ -78,4 +94,4 @@ def solve_tool_ik(
                 break
             free &= ~blocked
         q = clamp_to_limits(q + dq.clamp(-max_step_rad, max_step_rad))
-    return (q, *errors(vmap(residual)(q, *args)[0]))
+    return (q, *errors(residual(q)[0]))
