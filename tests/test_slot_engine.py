@@ -5,6 +5,7 @@ invariants, and its static-shape helpers."""
 from __future__ import annotations
 
 import copy
+import time
 from pathlib import Path
 from typing import Any
 
@@ -175,3 +176,35 @@ def test_compaction_without_a_sync_keeps_the_true_entries_in_order():
     assert static[mask].tolist() == [1, 2, 5] and mask.tolist() == [True, True, True, False] and int(lost) == 0
     static, mask, lost = compact(valid, 2)
     assert static.tolist() == [1, 2] and mask.all() and int(lost) == 1
+
+
+def test_proposals_cover_the_expected_rejections_and_episodes_past_the_target_are_surplus():
+    """The slots fill with enough proposals to cover the rejections expected at the acceptance rate filed so far (not
+    one wave per rejection at the end), and once the target is reached nothing more is counted or written."""
+    from wc.expand.config import ExpandConfig
+    from wc.expand.slot_expansion import SlotExpansion, _Outcome
+
+    params = expand_params()
+    params["expand"].update(batch_size=8, max_attempts=100)
+    cfg = load_section(params, "expand", ExpandConfig)
+    written = []
+    e = SlotExpansion(None, None, [], cfg, None, 0.04, 4, None, None, time.perf_counter(),
+                      lambda *a: written.append(a))
+
+    def proposals_allowed() -> int:
+        n = 0
+        while e._may_propose():
+            e.proposed += 1
+            n += 1
+        return n
+
+    assert proposals_allowed() == 4  # no verdict yet: one proposal per wanted episode
+    e.filed = e.generated = 4
+    e.accepted = 2  # half accepted: the 2 still wanted need 4 in flight
+    assert proposals_allowed() == 4 and e.proposed - e.filed == 4
+    e.accepted = 4
+    assert e.done and proposals_allowed() == 0
+    e.outcomes[e.filed] = _Outcome(None, infeasible="would be filed before the target")
+    e._file()
+    assert e.surplus == 1 and e.filed == 5 and not written and not e.infeasible
+    assert e.unused == 1 + e.proposed - e.filed

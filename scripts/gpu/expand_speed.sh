@@ -5,11 +5,13 @@
 #   bash scripts/gpu/expand_speed.sh wait    # wait up to WAIT seconds (default 540); progress and reports to $OUT
 # Settings: ITERATIONS (Newton's VBD iterations, default 20: converged lifts), WORLDS (Newton's worlds counts, default
 # 32,64,128), SLOTS (expand.batch_size, default 128), PLANNERS (planning processes, default 8), NEWTON_S (measured
-# Newton seconds per worlds count, default 45), EXTRA (more --set overrides), NAME (report name, default h100).
+# Newton seconds per worlds count, default 45), TARGET (expand.target_trajectories of the timed expansion, sources
+# included, default 150), TEACHER (generated plans replayed in Newton, default 64), EXTRA (more --set overrides), NAME
+# (report name, default the GPU's model: h100, h200).
 cd "$(dirname "$0")/../.."
 export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1
 R=/tmp/expand_speed; mkdir -p $R "${OUT:-$R/out}"
-NAME=${NAME:-h100}
+NAME=${NAME:-$(nvidia-smi --query-gpu=name --format=csv,noheader | head -1 | grep -o 'H[0-9]*' | tr H h)}
 SETS=(--set sim.device=cuda --set validate.device=cuda --set expand.device=cuda --set sim.iterations=${ITERATIONS:-20}
   --set expand.batch_size=${SLOTS:-128} --set expand.slots.planner_workers=${PLANNERS:-8} --set sim.worlds=64 ${EXTRA:-})
 case "$1" in
@@ -20,7 +22,7 @@ case "$1" in
     python3 -m benchmarks.expand_smoke --device cuda --out $R/smoke.json || exit 1
     cp $R/smoke.json "$OUT"/ 2>/dev/null
     setsid nohup python3 -m benchmarks.expand_speed --params params.yaml "${SETS[@]}" --worlds ${WORLDS:-32,64,128} \
-      --newton-seconds ${NEWTON_S:-45} --work $R/work --out $R/expand_speed_$NAME.json > $R/bench.log 2>&1 < /dev/null &
+      --newton-seconds ${NEWTON_S:-45} --target ${TARGET:-150} --teacher-plans ${TEACHER:-64} --work $R/work --out $R/expand_speed_$NAME.json > $R/bench.log 2>&1 < /dev/null &
     echo $! > $R/bench.pid
     sleep ${FIRST_WAIT:-300}; tail -c 1500 $R/bench.log | tr '\r' '\n' | tail -15 ;;
   wait)

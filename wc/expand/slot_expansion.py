@@ -72,6 +72,7 @@ class _Outcome:
 
 
 FRAMES_MARGIN = 1.5  # slot buffers hold this times the longest episode planned so far
+MIN_EXPECTED_ACCEPTANCE = 0.25  # proposals ahead of the target at most 1 / this times the episodes still wanted
 
 
 class SlotExpansion:
@@ -90,6 +91,7 @@ class SlotExpansion:
         self.planner = CoveragePlanner()
         self.ahead = cfg.slots.plans_ahead or 2 * cfg.batch_size
         self.proposed = self.filed = self.accepted = self.generated = self.frames = 0
+        self.surplus = 0  # episodes filed after the target was reached: neither counted nor written
         self.queue: deque[_Proposed] = deque()
         self.slots: list[_Running | None] = [None] * cfg.batch_size
         self.outcomes: dict[int, _Outcome] = {}
@@ -104,9 +106,14 @@ class SlotExpansion:
 
     # -- proposals and planning --
     def _may_propose(self) -> bool:
+        """While the episodes in flight, at the acceptance rate filed so far, are not expected to reach the target (so
+        the last slots fill with enough episodes to cover its rejections instead of waiting for them one wave at a
+        time), within max_attempts, plans_ahead and max_minutes."""
         cfg = self.cfg
         in_flight = self.proposed - self.filed
-        return (self.accepted + in_flight < self.wanted and self.proposed < cfg.max_attempts and in_flight < self.ahead
+        rate = max(self.accepted / self.generated, MIN_EXPECTED_ACCEPTANCE) if self.generated else 1.0
+        return (self.accepted + rate * in_flight < self.wanted and self.proposed < cfg.max_attempts
+                and in_flight < self.ahead
                 and not (cfg.max_minutes > 0 and time.perf_counter() - self.started > 60.0 * cfg.max_minutes))
 
     def _propose(self) -> None:
@@ -167,10 +174,14 @@ class SlotExpansion:
                 self.slots[s] = None
 
     def _file(self) -> None:
+        """File the outcomes in proposal order; once the target is reached, later ones are surplus (not written)."""
         while self.filed in self.outcomes:
             out = self.outcomes.pop(self.filed)
             p = out.proposed
             self.filed += 1
+            if self.done:
+                self.surplus += 1
+                continue
             if out.infeasible is not None:
                 self.planner.record(p.spec, UNREACHABLE)
                 self.infeasible.append({"seed": p.spec.seed, "cell": p.spec.cell, "parent": p.source.eid,
@@ -228,11 +239,16 @@ class SlotExpansion:
             if any(r is not None for r in self.slots) or not (self.queue or self._may_propose()):
                 return
 
+    @property
+    def done(self) -> bool:
+        """The target is reached: the episodes still in the slots are surplus."""
+        return self.accepted >= self.wanted
+
     def run(self) -> None:
         """Until the target is reached, the attempts run out or the deadline passes; every write done."""
         try:
             self._keep_busy()
-            while any(r is not None for r in self.slots):
+            while any(r is not None for r in self.slots) and not self.done:
                 self.rollout.advance(self.cfg.slots.sync_every)
                 self._file()  # host work while the device runs
                 self._propose()
@@ -253,6 +269,12 @@ class SlotExpansion:
     @property
     def attempts(self) -> int:
         return self.proposed
+
+    @property
+    def unused(self) -> int:
+        """Proposed episodes neither counted nor written because the target was reached first (planned, rolled out
+        in part or filed after it)."""
+        return self.surplus + self.proposed - self.filed
 
     @property
     def counters(self) -> dict[str, dict[str, float]]:

@@ -202,7 +202,8 @@ def expand(params: dict[str, Any], model_dir: str | Path = EXPAND["model"], stor
         result = {**_report(slots, cfg, sources, checkpoint, store, out, rejected_out, phash, {"name": "local"},
                             str(model.device), environment_info(str(model.device)), time.perf_counter() - started),
                   "engine": "slots", "slots": cfg.batch_size, "sync_every": cfg.slots.sync_every,
-                  "slot_loads": slots.loads, "restarts": slots.restarts, "timing": slots.timing()}
+                  "slot_loads": slots.loads, "restarts": slots.restarts, "unused_proposals": slots.unused,
+                  "timing": slots.timing()}
         write_json_atomic(report, result)
         return result
     if cfg.executor == "local":  # the model loads before any output, as it always did
