@@ -11,7 +11,7 @@
 cd "$(dirname "$0")/../.."
 export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1
 R=/tmp/expand_speed; mkdir -p $R "${OUT:-$R/out}"
-NAME=${NAME:-$(nvidia-smi --query-gpu=name --format=csv,noheader | head -1 | grep -o 'H[0-9]*' | tr H h)}
+NAME=${NAME:-$(nvidia-smi --query-gpu=name --format=csv,noheader | head -1 | grep -o 'H[0-9][0-9]*' | head -1 | tr H h)}
 SETS=(--set sim.device=cuda --set validate.device=cuda --set expand.device=cuda --set sim.iterations=${ITERATIONS:-20}
   --set expand.batch_size=${SLOTS:-128} --set expand.slots.planner_workers=${PLANNERS:-8} --set sim.worlds=64 ${EXTRA:-})
 case "$1" in
