@@ -31,6 +31,7 @@ from benchmarks.expand_speed_report import chart, markdown
 from wc.agent.planner import CoveragePlanner
 from wc.agent.runner import EpisodeRecord, build_task_world, simulate_batch, simulator_store
 from wc.config import add_params_arguments, load_section, read_params
+from wc.data.store import TrajectoryStore
 from wc.devices import resolve_warp_device
 from wc.expand.stage import expand
 from wc.expand.teacher import teacher_check
@@ -155,9 +156,11 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     report["teacher"] = {k: teacher.get(k) for k in ("plans", "agreement", "precision", "recall", "newton_accepts",
                                                       "constant_agreement", "mean_rms_error_m", "confusion", "wall_s")}
     best = max(report["newton"], key=lambda r: r["accepted_per_min"])
-    bag = load_section(params, "scene", SceneConfig).bag.target_vertices
+    src = TrajectoryStore(store)
+    first = src.episodes_where(task=args.task, accepted=True)[0]
+    vertices = int(src.read_window(first, 0, 1, ("x",))["x"].shape[1])  # the scene's object vertices, as simulated
     report["rows"].append({
-        "vertices": gen.get("vertices", bag), "newton_worlds": best["worlds"],
+        "vertices": vertices, "newton_worlds": best["worlds"],
         "newton_accepted_per_min": best["accepted_per_min"],
         "worldcontact_accepted_per_min": gen["accepted_per_min"],
         "ratio": gen["accepted_per_min"] / best["accepted_per_min"] if best["accepted_per_min"] else None,
