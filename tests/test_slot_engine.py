@@ -208,3 +208,30 @@ def test_proposals_cover_the_expected_rejections_and_episodes_past_the_target_ar
     e._file()
     assert e.surplus == 1 and e.filed == 5 and not written and not e.infeasible
     assert e.unused == 1 + e.proposed - e.filed
+
+
+@pytest.mark.slow
+def test_planning_processes_start_with_the_pool_and_plan_as_the_stage_does(inputs):
+    """PlanPool's worker processes start when it is made (their start-up overlaps the model's loading) and give the
+    same plans as planning in the stage's own process."""
+    from wc.expand.config import ExpandConfig
+    from wc.expand.plan import source_episodes
+    from wc.expand.plan_pool import PlanPool
+    from wc.scene.episode_scenes import EpisodeScenes
+    from wc.tasks.base import EpisodeSpec, get_task
+
+    params, store, _ = inputs
+    cfg = load_section(params, "expand", ExpandConfig)
+    src = TrajectoryStore(store)
+    task = get_task(cfg.task, params)
+    sources, scene = source_episodes(src, task, EpisodeScenes(load_section(params, "scene", SceneConfig), src))
+    validate_cfg = load_section(params, "validate", ValidateConfig)
+    spec = EpisodeSpec(task.name, 11, sources[0].cell, 0.45, 0.025)
+    with PlanPool(params, scene, sources, cfg, src.dt, validate_cfg, 0) as here:
+        expected = here.submit(spec, 0).result()
+    with PlanPool(params, scene, sources, cfg, src.dt, validate_cfg, 2) as pool:
+        assert len(pool._pool._processes) == 2  # both started before any plan was asked for
+        got = pool.submit(spec, 0).result(timeout=300)
+    assert expected.planned is not None, expected.infeasible  # a plan to compare, not two refusals
+    np.testing.assert_array_equal(got.planned.actions, expected.planned.actions)
+    np.testing.assert_array_equal(got.poses, expected.poses)

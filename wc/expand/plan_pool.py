@@ -5,6 +5,7 @@ Results come back as futures, in whatever order they finish; the caller consumes
 
 from __future__ import annotations
 
+import os
 from concurrent.futures import Future
 from dataclasses import dataclass
 from typing import Any
@@ -70,6 +71,8 @@ class PlanPool:
         # spawned (a forked worker cannot use autograd once the parent has, as the IK does, nor CUDA), ending with
         # the stage even when it is killed
         self._pool = None if workers == 0 else spawn_pool(workers, initializer=_init_worker, initargs=args)
+        for _ in range(workers):  # start every worker now (a spawned pool starts one per submit): their imports and
+            self._pool.submit(os.getpid)  # planners load while the stage loads its model, not while the slots wait
 
     def submit(self, spec: EpisodeSpec, source: int) -> Future[PlanResult]:
         if self._pool is not None:
