@@ -6,9 +6,7 @@ import math
 
 import torch
 
-from wc.scene.piper import AXES, JOINT_LIMITS, LINK_NAMES, TCP_IN_LINK6_M, chain_frames, clamp_to_limits
-
-_LINK6 = LINK_NAMES.index("link6")
+from wc.scene.piper import AXES, JOINT_LIMITS, chain_frames, clamp_to_limits, tool_from_frames
 
 
 def tool_jacobian(q: torch.Tensor, opening: torch.Tensor | float, base_pose: torch.Tensor
@@ -18,9 +16,7 @@ def tool_jacobian(q: torch.Tensor, opening: torch.Tensor | float, base_pose: tor
     dR/dq_i = [a_i]x R [B, 3, 3, 6], with a_i and o_i joint i's world axis and origin. The geometric Jacobian: one
     forward pass, no autograd."""
     pos, rot, _ = chain_frames(q, opening, base_pose)  # [B, 8, 3], [B, 8, 3, 3]
-    tcp = torch.as_tensor(TCP_IN_LINK6_M, device=q.device, dtype=q.dtype)
-    p = pos[:, _LINK6] + rot[:, _LINK6] @ tcp
-    r = rot[:, _LINK6]
+    p, r = tool_from_frames(pos, rot)
     axes = (rot[:, :6] @ torch.as_tensor(AXES[:6], device=q.device, dtype=q.dtype)[..., None])[..., 0]  # [B, 6, 3]
     d_pos = torch.linalg.cross(axes, p[:, None] - pos[:, :6], dim=-1).transpose(1, 2)
     d_rot = torch.linalg.cross(axes[:, :, :, None].expand(-1, -1, -1, 3), r[:, None].expand(-1, 6, -1, -1), dim=2)

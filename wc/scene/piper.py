@@ -206,9 +206,14 @@ def tool_frame(
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """TCP world position [..., 3] (m), rotation [..., 3, 3] and quat xyzw [..., 4]; see tool_pose."""
     pos, rot, quat = chain_frames(q, opening, base_pose)
+    return (*tool_from_frames(pos, rot), quat[..., LINK_NAMES.index("link6"), :])
+
+
+def tool_from_frames(pos: torch.Tensor, rot: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """TCP world position [..., 3] and rotation [..., 3, 3] from chain_frames' positions and rotations."""
     i = LINK_NAMES.index("link6")
-    tcp = torch.as_tensor(TCP_IN_LINK6_M, device=q.device, dtype=q.dtype)
-    return pos[..., i, :] + rot[..., i, :, :] @ tcp, rot[..., i, :, :], quat[..., i, :]
+    tcp = torch.as_tensor(TCP_IN_LINK6_M, device=pos.device, dtype=pos.dtype)
+    return pos[..., i, :] + rot[..., i, :, :] @ tcp, rot[..., i, :, :]
 
 
 def tool_pose(q: torch.Tensor, opening: torch.Tensor | float, base_pose: torch.Tensor) -> torch.Tensor:
