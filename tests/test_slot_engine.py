@@ -235,3 +235,17 @@ def test_planning_processes_start_with_the_pool_and_plan_as_the_stage_does(input
     assert expected.planned is not None, expected.infeasible  # a plan to compare, not two refusals
     np.testing.assert_array_equal(got.planned.actions, expected.planned.actions)
     np.testing.assert_array_equal(got.poses, expected.poses)
+
+
+def test_the_expansion_line_warns_when_near_pairs_did_not_fit_the_capacities():
+    """Dropped near pairs are neither bounded nor kept apart (the bag slips out of the pads): the stage's line says so
+    and names the params to raise; a run that dropped none, or the reference engine (no counters), says nothing."""
+    from wc.expand.stage import expand_summary
+
+    report = {"task": "lift_handle", "accepted": 3, "generated": 4, "infeasible_plans": 0, "expanded_total": 5,
+              "target_trajectories": 5, "source_episodes": 2, "target_reached": True, "trajectories_per_min": 1.0,
+              "device": "cuda", "wall_s": 1.0, "rejections": {"not_lifted": 1}}
+    line = expand_summary({**report, "projection_stats": {"pairs_dropped": 4535049.0}})
+    assert "WARNING: 4,535,049 near cloth pairs" in line and "expand.slots.pair_capacity" in line
+    for stats in ({"pairs_dropped": 0.0}, None):
+        assert "WARNING" not in expand_summary({**report, "projection_stats": stats})

@@ -27,8 +27,8 @@ class SlotConfig:
     rollback_rounds: int = 12  # rollback rounds (a shorter step for a ring wider each round)
     vertex_pairs: int = 16  # candidate triangles kept per cloth vertex (self-contact, bounded step)
     edge_pairs: int = 16  # candidate edges kept per cloth edge (bounded step)
-    pair_capacity: int = 96  # bounded step: near element pairs per episode its passes handle on CUDA (overflow counted)
-    self_contact_capacity: int = 64  # self-contact: vertex-triangle pairs per episode handled on CUDA (overflow counted)
+    pair_capacity: int = 512  # bounded step: near element pairs per episode its passes handle on CUDA (overflow counted)
+    self_contact_capacity: int = 256  # self-contact: vertex-triangle pairs per episode handled on CUDA (overflow counted)
 
     def validate(self) -> None:
         for name in ("sync_every", "iterations", "bounded_passes", "vertex_pairs", "edge_pairs", "pair_capacity",

@@ -293,4 +293,12 @@ def expand_summary(r: dict[str, Any]) -> str:
             f"({r['infeasible_plans']} plans infeasible); rejected: {failed}; {r['expanded_total']}/"
             f"{r['target_trajectories']} trajectories with the {r['source_episodes']} source ones"
             f"{'' if r['target_reached'] else ' (target NOT reached)'}; {r['trajectories_per_min']:.2f} generated/min "
-            f"on {r['device']}, {r['wall_s']:.1f} s")
+            f"on {r['device']}, {r['wall_s']:.1f} s" + _overflow_warning(r.get("projection_stats")))
+
+
+def _overflow_warning(stats: dict[str, float] | None) -> str:
+    """A warning when the slot engine's pair capacities overflowed: the near pairs left out are neither bounded nor
+    kept apart, and the bag then tends to slip out of the pads (reports/gpu/expand_settings_accuracy.md)."""
+    dropped = (stats or {}).get("pairs_dropped") or 0
+    return (f"; WARNING: {dropped:,.0f} near cloth pairs did not fit the slot engine's capacities: raise "
+            "expand.slots.pair_capacity / self_contact_capacity" if dropped else "")
