@@ -249,3 +249,34 @@ def test_the_expansion_line_warns_when_near_pairs_did_not_fit_the_capacities():
     assert "WARNING: 4,535,049 near cloth pairs" in line and "expand.slots.pair_capacity" in line
     for stats in ({"pairs_dropped": 0.0}, None):
         assert "WARNING" not in expand_summary({**report, "projection_stats": stats})
+
+
+@pytest.mark.slow
+def test_the_static_pair_path_equals_the_exact_one_when_the_capacity_suffices_and_counts_what_overflows(scene,
+                                                                                                       monkeypatch):
+    """The bounded step's CUDA path (fixed passes, pairs compacted into a static pool of capacity x slots) run on the
+    CPU: with room for every near pair it moves the cloth exactly as the CPU's exact path; with too little room the
+    overflow is counted and the pairs left out stay over their bound (what made lifts slip on the GPU)."""
+    from dataclasses import replace
+
+    import wc.expand.fixed_untangle as fixed_untangle
+
+    x_prev, x, _ = _perturbed(scene, 2, 0.004)
+    v = (x - x_prev) / 0.04
+
+    def bounded(capacity: int | None) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        fixed = FixedStepProjection(scene, replace(CONFIG, pair_capacity=capacity or 1), torch.device("cpu"))
+        fixed.prepare(x_prev)
+        monkeypatch.setattr(fixed_untangle, "host_checks", lambda t: capacity is None)
+        out, _ = fixed.bounded.apply(fixed.bvh, x_prev, x, v, 0.04, fixed.stats)
+        return out, fixed.stats
+
+    exact, exact_stats = bounded(None)
+    assert int(exact_stats["limited_pairs"]) > 0  # the step moves near pairs past their bounds: there is work
+    full_lists = int(exact_stats["pairs_dropped"])  # candidate lists (16 per vertex / edge) that overflowed
+    roomy, roomy_stats = bounded(20_000)
+    assert int(roomy_stats["pairs_dropped"]) == full_lists
+    assert torch.allclose(roomy, exact, atol=1e-7)
+    tight, tight_stats = bounded(8)
+    assert int(tight_stats["pairs_dropped"]) > full_lists
+    assert float((tight - exact).abs().max()) > 1e-4
