@@ -2,10 +2,12 @@
 step's pair capacity (scripts/gpu/expand_settings_accuracy.sh's reports, benchmarks.expand_smoke per capacity).
 
     python -m benchmarks.expand_settings_report --runs reports/gpu/expand_settings_accuracy \
-        --out reports/gpu/expand_settings_accuracy.md --png reports/gpu/expand_settings_accuracy.png
+        --out reports/gpu/expand_settings_accuracy.md --png reports/gpu/expand_settings_accuracy.png \
+        --json reports/gpu/expand_settings_accuracy.json
 
 Reads expand_<setting>.json and teacher_check_<setting>.json (one row per setting), smoke_pairs<N>.json (ms per frame
-of 256 slots at pair capacity N); writes a table and a chart of teacher agreement and RMS against frame cost.
+of 256 slots at pair capacity N); writes a table, a chart of teacher agreement and RMS against frame cost, and the
+rows as JSON (the results page's headline, wc/report_kinds.py).
 """
 
 from __future__ import annotations
@@ -94,11 +96,14 @@ def main() -> None:
     parser.add_argument("--runs", type=Path, required=True)
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--png", type=Path, required=True)
+    parser.add_argument("--json", type=Path, required=True)
     args = parser.parse_args()
     settings, costs = rows(args.runs), frame_costs(args.runs)
     if not settings:
         raise SystemExit(f"expand_settings_report: error: no expand_*/teacher_check_* pairs in {args.runs}")
     args.out.write_text(markdown(settings, costs))
+    args.json.write_text(json.dumps({"environment": {"gpu": settings[0]["gpu"]}, "settings": {r["setting"]: r for r in settings},
+                                     "frame_cost": costs}, indent=2) + "\n")
     chart(settings, costs, args.png)
     print(args.out.read_text())
 

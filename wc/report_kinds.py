@@ -213,6 +213,12 @@ def _expand_speed(v: dict[str, Any]) -> str:
     return f"world-model expansion against Newton on {v['environment.gpu']}: {rows}"
 
 
+def _expand_settings(v: dict[str, Any]) -> str:
+    rows = "; ".join(f"{name} {_g(agree, 2)} / {_g(rms, 3)} mm" for name, agree, rms in zip(
+        v["settings.*.agreement"], v["settings.*.agreement"].values(), v["settings.*.rms_mm"].values()))
+    return f"expansion's teacher agreement / RMS to Newton per slot-engine setting on {v['environment.gpu']}: {rows}"
+
+
 _POLICY = ("policy_type", "task", "lift_height_m", "hold_s")
 KINDS: tuple[ReportKind, ...] = (
     ReportKind("policy comparison", ("policy_*_arms.json",),
@@ -229,6 +235,8 @@ KINDS: tuple[ReportKind, ...] = (
     ReportKind("expansion speed", ("expand_speed_*.json",),
                ("rows.*.vertices", "rows.*.newton_accepted_per_min", "rows.*.worldcontact_accepted_per_min",
                 "rows.*.ratio", "rows.*.acceptance", "environment.gpu"), _expand_speed),
+    ReportKind("expansion settings", ("expand_settings_*.json",),
+               ("settings.*.agreement", "settings.*.rms_mm", "environment.gpu"), _expand_settings),
     ReportKind("expansion", ("expand_*.json",),
                ("accepted", "generated", "acceptance_rate", "accepted_per_min", "source_episodes", "expanded_total",
                 "model.path", "model.params_hash", "environment.gpu"), _expand),
