@@ -12,6 +12,7 @@ from collections.abc import Mapping
 from pathlib import Path
 
 FLAG = "expanded_equals_source"  # the top-level report key
+SUMMARY_FILE = "train_summary.json"  # a saved policy's training summary (wc.policy.finetune writes it)
 WARNING = "the expanded dataset holds no generated episode: it equals the source one and the comparison compares nothing"
 
 

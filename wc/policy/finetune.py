@@ -35,6 +35,7 @@ from lerobot.utils.constants import ACTION, CHECKPOINTS_DIR, OBS_IMAGES, OBS_STA
 from lerobot.utils.feature_utils import dataset_to_policy_features
 
 from wc.atomic import remove_stale_temporaries
+from wc.policy.comparison import SUMMARY_FILE
 from wc.policy.policy_config import PolicyConfig
 from wc.policy.pretrained import PretrainedFilesError, check_weights_loaded, checkpoint_weights, tokenizer_dir
 from wc.policy.processors import load_processors
@@ -42,7 +43,6 @@ from wc.policy.stock_trainer import (StepRecorder, last_checkpoint, make_acceler
                                     train_config)
 from wc.reports import replace_dir
 
-SUMMARY_FILE = "train_summary.json"
 TOKENIZER_DIR = "tokenizer"
 
 

@@ -24,8 +24,7 @@ from wc.config import load_section, params_hash
 from wc.devices import resolve_warp_device
 from wc.model_ref import file_sha256
 from wc.paths import POLICY_EVAL
-from wc.policy.comparison import FLAG, expanded_equals_source, trained_episodes
-from wc.policy.finetune import SUMMARY_FILE
+from wc.policy.comparison import FLAG, SUMMARY_FILE, expanded_equals_source, trained_episodes
 from wc.policy.policy_config import PolicyConfig
 from wc.policy.pretrained import checkpoint_weights
 from wc.policy_eval.config import PolicyEvalConfig

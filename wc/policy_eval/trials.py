@@ -15,15 +15,15 @@ from collections.abc import Callable, Iterable
 from concurrent.futures import as_completed
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import torch
-
-from wc.policy.finetune import load_policy
-from wc.policy_eval.closed_loop import PolicyActor, run_episode
-from wc.policy_eval.env import WorldContactLiftEnv
-from wc.policy_eval.videos import write_mp4
 from wc.worker_pool import spawn_pool
+
+if TYPE_CHECKING:
+    from wc.policy_eval.closed_loop import PolicyActor
+
+# lerobot, Newton and the renderer are imported where a trial runs (TrialRunner), not on import: the stage's parent
+# process only hands jobs to its spawned workers, and importing them there cost ~25 s of every policy_eval run
 
 
 @dataclass(frozen=True)
@@ -58,11 +58,17 @@ class TrialRunner:
     """One env and the policies it has loaded; runs one job at a time."""
 
     def __init__(self, params: dict[str, Any], videos_dir: Path) -> None:
+        from wc.policy_eval.env import WorldContactLiftEnv
+
         self.env = WorldContactLiftEnv(params)
         self.videos_dir = Path(videos_dir)
         self.actors: dict[str, PolicyActor] = {}
 
     def __call__(self, job: TrialJob) -> TrialResult:
+        from wc.policy.finetune import load_policy
+        from wc.policy_eval.closed_loop import PolicyActor, run_episode
+        from wc.policy_eval.videos import write_mp4
+
         load_s = 0.0
         if job.path not in self.actors:
             tic = time.perf_counter()
@@ -80,6 +86,8 @@ _RUNNER: TrialRunner | None = None  # the worker process's runner
 
 
 def _start_worker(params: dict[str, Any], videos_dir: Path, torch_threads: int) -> None:
+    import torch
+
     global _RUNNER
     torch.set_num_threads(torch_threads)
     _RUNNER = TrialRunner(params, videos_dir)
