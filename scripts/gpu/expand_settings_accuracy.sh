@@ -17,19 +17,16 @@ WORLDS=64 fresh_lift_data ${EPISODES:-32} 96 4 2 2
 wait
 export MODEL=${MODEL:-models/pretrained/worldcontact-lift-handle} SELF_CONTACT=true EXPAND_MINUTES=0 EXPAND_BATCH=64 \
   TARGET=1000 ATTEMPTS_EXPAND=${PLANS:-80} TEACHER=${PLANS:-80} SKIP_EVAL=1 EXPAND_TIMEOUT=1200 TEACHER_TIMEOUT=900
-# setting TAG OVERRIDES...: one expansion and its teacher check
+# setting TAG: one expansion and its teacher check, with the overrides in EXTRA_EXP_SETS
 setting() {
-  local tag=$1; shift
-  TAG=$tag EXTRA_EXP_SETS="$*" bash scripts/gpu/expand_check_rollouts.sh > $R/setting_$tag.log 2>&1
-  step "$tag rc=$? $(tail -c 300 $R/setting_$tag.log | tr '\r\n' '  ')"
+  TAG=$1 EXTRA_EXP_SETS=${EXTRA_EXP_SETS:-} bash scripts/gpu/expand_check_rollouts.sh > $R/setting_$1.log 2>&1
+  step "$1 rc=$? $(tail -c 300 $R/setting_$1.log | tr '\r\n' '  ')"
 }
-UNDONE="--set expand.slots.bf16=false --set expand.slots.iterations=50 --set expand.slots.final_edge_passes=50"
-PAIRS="--set expand.slots.pair_capacity=512 --set expand.slots.self_contact_capacity=256"
-setting slots &
-setting fp32 --set expand.slots.bf16=false &
-setting passes50 --set expand.slots.iterations=50 --set expand.slots.final_edge_passes=50 &
-setting pairs512 $PAIRS &
-setting all_undone $UNDONE $PAIRS &
-setting reference --set expand.engine=batches &
+EXTRA_EXP_SETS="" setting slots &
+EXTRA_EXP_SETS="--set expand.slots.bf16=false" setting fp32 &
+EXTRA_EXP_SETS="--set expand.slots.iterations=50 --set expand.slots.final_edge_passes=50" setting passes50 &
+EXTRA_EXP_SETS="--set expand.slots.pair_capacity=512 --set expand.slots.self_contact_capacity=256" setting pairs512 &
+EXTRA_EXP_SETS="--set expand.slots.bf16=false --set expand.slots.iterations=50 --set expand.slots.final_edge_passes=50 --set expand.slots.pair_capacity=512 --set expand.slots.self_contact_capacity=256" setting all_undone &
+EXTRA_EXP_SETS="--set expand.engine=batches" setting reference &
 wait
 step "DONE"
