@@ -25,6 +25,7 @@ from pathlib import Path
 import psutil
 
 POLL_S = 0.2  # how often the watcher looks at the tree
+QUIET_LOOKS = 3  # after the parent died: tagged processes are looked for until this many looks in a row find none
 TOKEN_VAR = "WC_REAPER_TOKEN"  # the environment variable that marks the processes started inside the block
 READY = "watching"  # what the watcher prints once it has looked at the tree
 
@@ -47,7 +48,7 @@ def _kill(processes: list[psutil.Process]) -> list[int]:
         try:
             process.kill()  # psutil refuses a pid that another process has taken since
             killed.append(process.pid)
-        except psutil.NoSuchProcess:
+        except psutil.Error:  # gone since, or not ours to kill: the rest still die
             pass
     return killed
 
@@ -69,11 +70,15 @@ def reap_when_parent_dies(parent_pid: int, token: str, poll_s: float = POLL_S) -
     except psutil.NoSuchProcess:
         pass
     killed = _kill(seen)
-    for _ in range(3):  # a tagged process may have started another in the meantime
-        if not (more := _kill(tagged_processes(token))):
-            break
+    quiet = 0
+    for _ in range(QUIET_LOOKS * 10):  # a tagged process may be starting another: look until a few looks find none
+        more = _kill(tagged_processes(token))
         killed += more
-    return killed
+        quiet = 0 if more else quiet + 1
+        if quiet == QUIET_LOOKS:
+            break
+        time.sleep(poll_s)
+    return list(dict.fromkeys(killed))
 
 
 @contextmanager
