@@ -58,7 +58,7 @@ def frame_costs(folder: Path) -> list[dict[str, Any]]:
 
 def markdown(settings: list[dict[str, Any]], costs: list[dict[str, Any]]) -> str:
     lines = ["# The expansion's agreement with Newton per slot-engine setting", "",
-             f"{settings[0]['gpu'] if settings else ''}; every setting expands the same fresh Newton lift_handle data "
+             f"{settings[0]['gpu']}; every setting expands the same fresh Newton lift_handle data "
              "with the same model and seed, side by side on one GPU; the teacher check replays every plan in Newton "
              "at the same VBD iterations (20).", "",
              "| setting | what | accepted / generated | not_lifted | pairs dropped | teacher agreement (one verdict "

@@ -214,8 +214,8 @@ def _expand_speed(v: dict[str, Any]) -> str:
 
 
 def _expand_settings(v: dict[str, Any]) -> str:
-    rows = "; ".join(f"{name} {_g(agree, 2)} / {_g(rms, 3)} mm" for name, agree, rms in zip(
-        v["settings.*.agreement"], v["settings.*.agreement"].values(), v["settings.*.rms_mm"].values()))
+    rms = v["settings.*.rms_mm"]
+    rows = "; ".join(f"{name} {_g(agree, 2)} / {_g(rms[name], 3)} mm" for name, agree in v["settings.*.agreement"].items())
     return f"expansion's teacher agreement / RMS to Newton per slot-engine setting on {v['environment.gpu']}: {rows}"
 
 
