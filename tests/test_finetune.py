@@ -141,6 +141,19 @@ def test_stage_trains_both_datasets_with_identical_settings(data_root: Path, tmp
     assert summary["params_hash"] == report["params_hash"] and len(summary["history"]) == ACT["steps"]
 
 
+@pytest.mark.slow
+def test_side_by_side_trains_each_dataset_in_its_own_process_to_the_same_policy(data_root: Path,
+                                                                               tmp_path: Path) -> None:
+    params = {"policy": {**copy.deepcopy(ACT), "side_by_side": True}, "_source": "test"}
+    saved = run(params, data_root, tmp_path / "models", tmp_path / "finetune.json")
+    src, exp = saved["datasets"]["source"], saved["datasets"]["expanded"]
+    weights = [(tmp_path / "models" / n / "model.safetensors").read_bytes() for n in ("source", "expanded")]
+    assert weights[0] == weights[1] and src["final_loss"] == exp["final_loss"]  # copies, same seed: same policy
+    alone = finetune(data_root / "source", tmp_path / "alone", _cfg(ACT))  # the same training in this process
+    assert src["final_loss"] == pytest.approx(alone["final_loss"], rel=1e-4)
+    assert os.getpid() not in {src["pid"], exp["pid"]} and src["pid"] != exp["pid"]
+
+
 def test_clear_errors(data_root: Path, tmp_path: Path) -> None:
     empty = tmp_path / "checkpoint"
     empty.mkdir()

@@ -1,13 +1,17 @@
 """The finetune stage's work (`python -m stages.finetune`): one lerobot policy per LeRobot dataset of
-`policy.datasets`, identical settings and seed (wc.policy.finetune) -> models/policy/<dataset>/ and the report;
-`stage_params` takes the `policy` section from another file (`--policy FILE`).
+`policy.datasets`, identical settings and seed (wc.policy.finetune) -> models/policy/<dataset>/ and the report, one
+after another or side by side (`policy.side_by_side`: a process each); `stage_params` takes the `policy` section from
+another file (`--policy FILE`).
 """
 
 from __future__ import annotations
 
+import os
 import time
 from pathlib import Path
 from typing import Any
+
+import torch
 
 from wc.config import ParamsError, load_section, params_hash, read_params
 from wc.paths import FINETUNE
@@ -16,6 +20,7 @@ from wc.policy.finetune import dataset_metadata, finetune
 from wc.policy.policy_config import PolicyConfig
 from wc.reports import environment_info, write_json_atomic
 from wc.smoke import smoke_label
+from wc.worker_pool import spawn_pool
 
 SECTIONS = ["policy"]
 
@@ -32,21 +37,38 @@ def run(params: dict[str, Any], data_root: str | Path = FINETUNE["data_root"],
         dataset_metadata(root, cfg)
     start = time.perf_counter()
     digest = params_hash(params, SECTIONS)
-    results = {name: finetune(root, Path(out_root) / name, cfg, meta={"params_hash": digest})
-               for name, root in roots.items()}
+    results = train_policies(roots, Path(out_root), cfg, {"params_hash": digest})
     equal = expanded_equals_source({name: r["episodes"] for name, r in results.items()})
     if equal:
         print(f"finetune: WARNING {WARNING}", flush=True)
     result = {
-        FLAG: equal, "policy_type": cfg.type, "steps": cfg.steps, "batch_size": cfg.batch_size, "seed": cfg.seed,
+        FLAG: equal, "policy_type": cfg.type, "side_by_side": cfg.side_by_side, "steps": cfg.steps,
+        "batch_size": cfg.batch_size, "seed": cfg.seed,
         "params_hash": digest, "wall_s": time.perf_counter() - start, "environment": environment_info(cfg.device),
         "datasets": {name: {k: r[k] for k in ("dataset", "episodes", "frames", "first_loss", "final_loss",
-                                               "s_per_step_median", "train_s", "wall_s", "parameters")}
+                                               "s_per_step_median", "train_s", "wall_s", "parameters", "pid")}
                      | {"model": str(Path(out_root) / name)} for name, r in results.items()},
         **smoke_label(params, "finetune"),
     }
     write_json_atomic(report, result)
     return result
+
+
+def train_policies(roots: dict[str, Path], out_root: Path, cfg: PolicyConfig,
+                   meta: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    """{dataset name: finetune's summary}, each policy trained on its dataset with `cfg`; with `cfg.side_by_side`
+    all at once, each in a spawned process that ends with this one (the same seed and settings: the same policies)."""
+    if not cfg.side_by_side or len(roots) < 2:
+        return {name: _finetune_here(root, out_root / name, cfg, meta) for name, root in roots.items()}
+    threads = max(1, (os.cpu_count() or 1) // len(roots))  # the cores shared out: oversubscribed OpenMP threads spin
+    with spawn_pool(len(roots), torch.set_num_threads, (threads,)) as pool:
+        futures = {name: pool.submit(_finetune_here, root, out_root / name, cfg, meta) for name, root in roots.items()}
+        return {name: future.result() for name, future in futures.items()}
+
+
+def _finetune_here(root: Path, out: Path, cfg: PolicyConfig, meta: dict[str, Any]) -> dict[str, Any]:
+    """finetune's summary and the id of the process that trained the policy."""
+    return finetune(root, out, cfg, meta=meta) | {"pid": os.getpid()}
 
 
 def stage_params(path: str | Path, overrides: list[str], policy_file: str | Path | None = None) -> dict[str, Any]:

@@ -45,6 +45,7 @@ class PolicyConfig:
     device: str  # cpu | cuda | cuda:k
     seed: int
     num_workers: int = 0  # DataLoader worker processes
+    side_by_side: bool = False  # train every dataset's policy at once, each in its own process (one device shared)
     log_every_steps: int = 10  # training loss recorded every k steps (and on the last)
     video_backend: str = "pyav"  # lerobot video decoder
     pretrained_path: str | None = None  # local checkpoint dir with model.safetensors (pi0.5: e.g. pi05_base)
