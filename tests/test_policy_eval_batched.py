@@ -130,8 +130,9 @@ def test_batch_key_is_validated() -> None:
     section = _params()["policy_eval"]
     assert load_section({"policy_eval": section}, "policy_eval", PolicyEvalConfig).batch == section["batch"] == 0
     assert load_section({"policy_eval": {**section, "batch": 8}}, "policy_eval", PolicyEvalConfig).batch == 8
-    for bad, message in ((-1, r"policy_eval: batch must be >= 0"), (True, r"policy_eval.batch must be an integer"),
-                         ("4", r"policy_eval.batch must be an integer"), (2.5, r"policy_eval.batch must be an integer")):
+    not_integer = r"policy_eval.batch must be an integer"
+    for bad, message in ((-1, r"policy_eval: batch must be >= 0"), (True, not_integer), ("4", not_integer),
+                         (2.5, not_integer)):
         with pytest.raises(ParamsError, match=message):
             load_section({"policy_eval": {**section, "batch": bad}, "_source": "test"}, "policy_eval",
                          PolicyEvalConfig)

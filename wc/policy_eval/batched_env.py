@@ -10,10 +10,15 @@ observations are its `observation` (the dataset's video round trip), heights its
 judged by its own `TrialJudge`. A trial that has ended (success, a non-finite action or state, or max_steps) keeps
 its verdict; its world keeps stepping with its last command held, and its observation is no longer rendered.
 
-The physics is the per-trial env's up to float rounding: a B-world model orders its solver's work differently from a
-one-world one (0.3 mm apart after one frame of the same inputs on the CPU), and a cloth rollout amplifies that, so a
-trial whose lift is near `lift_height_m` can get another verdict batched than alone; the trials of every policy see
-the same batches, so arms stay paired.
+The physics is the per-trial env's up to the solver's order of work: NewtonSimulator colours the B-world model's
+particle graph as a whole, so a world's VBD colour groups differ from the one-world model's, and VBD's few iterations
+do not converge, so the order shows (on the CPU, from the same state and commands: 0.3 mm after one frame; the 0.6 s
+settle of trial seed 2 ends 1.8 cm apart, which is why settling stays in the planner's one-world simulator). A
+trial whose lift is near `lift_height_m` can therefore get another verdict batched than alone (the oracle's seed-2
+lift: success at the same step 69, max lift 62.7 mm alone, 65.3 mm batched). Every policy's trials are cut into the
+same batches, so arms stay paired. Bitwise-equal batches would need NewtonSimulator to replicate a one-world colouring
+(wc/sim is frozen). A world whose state turns non-finite is judged non_finite and steps on with NaN particles; Newton
+groups self-contact and shape contact by world, but that no NaN reaches another world is untested.
 """
 
 from __future__ import annotations

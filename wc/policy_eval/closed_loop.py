@@ -62,8 +62,9 @@ class TrialOutcome:
 def trial_outcome(info: dict[str, Any], spec: EpisodeSpec) -> TrialOutcome:
     """The outcome of a trial from its last step's info and its spec."""
     return TrialOutcome(seed=int(info["trial_seed"]), episode_seed=int(info["episode_seed"]),
-                        success=bool(info["is_success"]), steps=int(info["steps"]), max_lift_m=float(info["max_lift_m"]),
-                        failure=info["failure"] or None, cell=spec.cell, speed=spec.speed, amplitude=spec.amplitude)
+                        success=bool(info["is_success"]), steps=int(info["steps"]),
+                        max_lift_m=float(info["max_lift_m"]), failure=info["failure"] or None, cell=spec.cell,
+                        speed=spec.speed, amplitude=spec.amplitude)
 
 
 def stack_observations(observations: list[dict[str, Any]]) -> dict[str, Any]:

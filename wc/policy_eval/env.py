@@ -77,7 +77,8 @@ def side_by_side(observation: dict[str, Any]) -> np.ndarray:
 def trial_info(judge: TrialJudge, success: bool, height_m: float, trial_seed: int, episode_seed: int) -> dict[str, Any]:
     """The info dict of a trial's step (reset: frame 0)."""
     return {"is_success": bool(success), "lowest_height_m": height_m, "max_lift_m": judge.monitor.max_height_m,
-            "steps": judge.steps, "failure": judge.failure or "", "trial_seed": trial_seed, "episode_seed": episode_seed}
+            "steps": judge.steps, "failure": judge.failure or "", "trial_seed": trial_seed,
+            "episode_seed": episode_seed}
 
 
 class WorldContactLiftEnv(gym.Env):
