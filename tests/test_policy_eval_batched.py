@@ -77,7 +77,7 @@ def test_each_trial_starts_from_the_per_trial_state(env: WorldContactLiftEnv, ba
 def test_replayed_program_gets_the_per_trial_verdicts(env: WorldContactLiftEnv, batched: BatchedLiftEnv) -> None:
     """The task's program replayed in a batch of two gets each trial's verdict alone: the same success, failure and
     steps (not_held at max_steps; non_finite_action for the trial whose actions turn NaN, which then keeps its verdict
-    while the other steps on), and the same max lift up to the worlds' float rounding."""
+    while the other steps on), and the same max lift up to the B-world solver's order of work (batched_env)."""
     alone = [run_episode(env, OracleActor(env), SEEDS[0])[0], run_episode(env, NonFiniteFrom(OracleActor(env)),
                                                                            SEEDS[1])[0]]
     assert [(o.success, o.failure, o.steps) for o in alone] == [(False, "not_held", STEPS),

@@ -5,9 +5,9 @@ and reports/policy_success.json (per arm: successes, trials, rate, interval; DVC
 
 Same params -> same report, apart from the `timing` entry, with any number of `policy_eval.workers` (trials run in
 worker processes, wc.policy_eval.trials). `policy_eval.batch` N > 0 runs N trials of a policy at once as the worlds
-of one Newton model (wc.policy_eval.batched_env): the same report, the same initial states per trial seed, physics
-equal up to float rounding (see there); timing.batch records it. Missing policy directories fail before any
-episode runs.
+of one Newton model (wc.policy_eval.batched_env): a report of the same shape, the same initial states per trial
+seed, physics equal up to the solver's order of work (see there); timing.batch records it. Missing policy
+directories fail before any episode runs.
 """
 
 from __future__ import annotations
