@@ -22,6 +22,8 @@ class PolicyEvalConfig:
     device: str  # simulator, renderer and policy: cpu | cuda | cuda:k | auto
     videos: int  # episodes recorded as mp4 per policy (the first trials)
     workers: int = 1  # processes running trials side by side (each its own env; on a GPU they share it)
+    batch: int = 0  # trials of a policy run at once as the worlds of one Newton model, one policy call per step for
+    # all (wc.policy_eval.batched_env); 0: each trial alone in a one-world env (what lerobot-eval's plugin env runs)
 
     def validate(self) -> None:
         if self.trials < 1:
@@ -41,6 +43,8 @@ class PolicyEvalConfig:
             raise ValueError(f"max_steps must be >= 1 or null, got {self.max_steps}")
         if self.workers < 1:
             raise ValueError(f"workers must be >= 1, got {self.workers}")
+        if self.batch < 0:
+            raise ValueError(f"batch must be >= 0 (0: one trial per env, N: N trials per batch), got {self.batch}")
         if self.videos < 0:
             raise ValueError(f"videos must be >= 0, got {self.videos}")
         check_device_name(self.device)

@@ -4,8 +4,10 @@ closed-loop episodes of the lift task -> reports/policy.json (success counts and
 and reports/policy_success.json (per arm: successes, trials, rate, interval; DVC metrics).
 
 Same params -> same report, apart from the `timing` entry, with any number of `policy_eval.workers` (trials run in
-worker processes, wc.policy_eval.trials). Missing policy directories fail before any
-episode runs.
+worker processes, wc.policy_eval.trials). `policy_eval.batch` N > 0 runs N trials of a policy at once as the worlds
+of one Newton model (wc.policy_eval.batched_env): a report of the same shape, the same initial states per trial
+seed, physics equal up to the solver's order of work (see there); timing.batch records it. Missing policy
+directories fail before any episode runs.
 """
 
 from __future__ import annotations
@@ -105,7 +107,8 @@ def run(params: dict[str, Any], models_root: str | Path = POLICY_EVAL["models_ro
     write_success_table(table, policies)
     write_success_metrics(metrics, policies)
     plot_success_rates(plot, policies, cfg.task, equal)
-    timing |= {"wall_s": time.perf_counter() - started, "workers": cfg.workers, "environment": environment_info(device)}
+    timing |= {"wall_s": time.perf_counter() - started, "workers": cfg.workers, "batch": cfg.batch,
+               "environment": environment_info(device)}
     result = {
         FLAG: equal, "task": cfg.task, "instruction": policy_cfg.task, "policy_type": policy_cfg.type,
         "trials": cfg.trials, "seeds": seeds, "episode_seeds": [cfg.seed_offset + s for s in seeds],

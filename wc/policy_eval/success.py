@@ -39,6 +39,39 @@ class LiftHoldMonitor:
         return "not_lifted" if not self.ever_lifted else "not_held" if self.streak else "dropped"
 
 
+class TrialJudge:
+    """One closed-loop trial's verdict, fed once per frame: success (the lift held), terminated by a non-finite
+    action or state, or truncated at `max_steps` (failed as the monitor says). Once the trial has ended its verdict is
+    final: both the per-trial env and the batched one (whose ended worlds keep stepping) judge with this."""
+
+    def __init__(self, lift_height_m: float, hold: int, max_steps: int) -> None:
+        self.monitor = LiftHoldMonitor(lift_height_m, hold)
+        self.max_steps = max_steps
+        self.steps = 0
+        self.success = False
+        self.failure: str | None = None  # None while running and on success
+        self.done = False
+
+    def start(self, height_m: float) -> bool:
+        """Frame 0 (the bag rests on the table there); True if it already satisfies the predicate."""
+        return self.monitor.update(height_m)
+
+    def step(self, height_m: float, failure: str | None = None) -> tuple[bool, bool, bool]:
+        """One more frame: its lowest bag height [m], or the failure that ended it (non_finite_action | non_finite).
+        Returns (success, terminated, truncated)."""
+        if self.done:
+            raise RuntimeError("the trial has ended: its verdict is final")
+        self.steps += 1
+        self.failure = failure
+        self.success = failure is None and self.monitor.update(height_m)
+        terminated = self.success or failure is not None
+        truncated = not terminated and self.steps >= self.max_steps
+        if truncated:
+            self.failure = self.monitor.failure()
+        self.done = terminated or truncated
+        return self.success, terminated, truncated
+
+
 def first_success(heights_m: Iterable[float], lift_height_m: float, hold: int) -> int | None:
     """Index of the first frame at which the heights sequence (m, one per frame) satisfies the predicate."""
     monitor = LiftHoldMonitor(lift_height_m, hold)
