@@ -72,6 +72,12 @@ def _start_worker(parent_pid: int, initializer: Callable[..., None] | None, init
         initializer(*initargs)
 
 
+def cores_each(workers: int) -> int:
+    """This machine's cores shared out between `workers` processes, at least one each: torch threads per worker
+    (more, and the workers' OpenMP threads spin against each other)."""
+    return max(1, (os.cpu_count() or 1) // workers)
+
+
 def spawn_pool(workers: int, initializer: Callable[..., None] | None = None,
                initargs: tuple[Any, ...] = ()) -> ProcessPoolExecutor:
     """A pool of `workers` spawned processes, each running `initializer(*initargs)` at start-up (a module-level

@@ -20,7 +20,7 @@ from wc.policy.finetune import dataset_metadata, finetune
 from wc.policy.policy_config import PolicyConfig
 from wc.reports import environment_info, write_json_atomic
 from wc.smoke import smoke_label
-from wc.worker_pool import spawn_pool
+from wc.worker_pool import cores_each, spawn_pool
 
 SECTIONS = ["policy"]
 
@@ -60,8 +60,7 @@ def train_policies(roots: dict[str, Path], out_root: Path, cfg: PolicyConfig,
     all at once, each in a spawned process that ends with this one (the same seed and settings: the same policies)."""
     if not cfg.side_by_side or len(roots) < 2:
         return {name: _finetune_here(root, out_root / name, cfg, meta) for name, root in roots.items()}
-    threads = max(1, (os.cpu_count() or 1) // len(roots))  # the cores shared out: oversubscribed OpenMP threads spin
-    with spawn_pool(len(roots), torch.set_num_threads, (threads,)) as pool:
+    with spawn_pool(len(roots), torch.set_num_threads, (cores_each(len(roots)),)) as pool:
         futures = {name: pool.submit(_finetune_here, root, out_root / name, cfg, meta) for name, root in roots.items()}
         return {name: future.result() for name, future in futures.items()}
 

@@ -13,7 +13,6 @@ trials are cut into the same batches.
 
 from __future__ import annotations
 
-import os
 import time
 from collections.abc import Callable, Iterable
 from concurrent.futures import as_completed
@@ -23,7 +22,7 @@ from typing import TYPE_CHECKING, Any
 
 from wc.config import load_section
 from wc.policy_eval.config import PolicyEvalConfig
-from wc.worker_pool import spawn_pool
+from wc.worker_pool import cores_each, spawn_pool
 
 if TYPE_CHECKING:
     from wc.policy_eval.batched_env import BatchedLiftEnv
@@ -170,8 +169,7 @@ def run_trials(params: dict[str, Any], jobs: list[TrialJob], videos_dir: Path, w
         for unit in units:
             collect(runner(unit))
         return [done[i] for i in range(len(jobs))]
-    threads = max(1, (os.cpu_count() or 1) // workers)
-    with spawn_pool(min(workers, len(units)), _start_worker, (params, videos_dir, threads)) as pool:
+    with spawn_pool(min(workers, len(units)), _start_worker, (params, videos_dir, cores_each(workers))) as pool:
         for future in as_completed([pool.submit(_run_unit, unit) for unit in units]):
             collect(future.result())
     return [done[i] for i in range(len(jobs))]
