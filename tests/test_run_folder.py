@@ -89,7 +89,11 @@ def test_write_run_folder_resolves_the_params_and_keeps_the_root_untouched(tmp_p
         (folder / "reports" / report).write_text("{}")
     (folder / "data").mkdir()
     assert record_files(folder) == [f"{folder.as_posix()}/{n}" for n in (
-        "config.yaml", "params.yaml", "dvc.yaml", "reports/train.json", "reports/ablations/no_contact_tokenizer.json")]
+        "config.yaml", "params.yaml", "dvc.yaml", ".gitignore", "reports/train.json",
+        "reports/ablations/no_contact_tokenizer.json")]
+    ignored = (folder / ".gitignore").read_text().splitlines()[1:]  # what DVC caches; git keeps the rest
+    assert "/models/worldcontact" in ignored and "/data/source/trajectories.zarr" in ignored
+    assert not any(line.startswith("/reports/") for line in ignored), ignored
 
 
 @pytest.mark.parametrize("pipeline, problem", [

@@ -11,6 +11,7 @@ stage that makes them.
     dvc.yaml     the root dvc.yaml's stages the targets need (their upstream stages too), run in the folder: the
                  commands and outputs as in the root, relative to the folder; code and shipped inputs (no stage
                  makes them) read from the repository (`../../wc/...`); the root's plots of those outputs
+    .gitignore   the outputs DVC caches, so git keeps only the record, also where DVC ran without git
 
 `dvc repro runs/<name>/dvc.yaml` then writes runs/<name>/dvc.lock, the run's record (docs/versioning.md).
 """
@@ -29,6 +30,7 @@ from wc.cli import run_cli
 from wc.config import ParamsError, read_params
 
 CONFIG = "config.yaml"
+IGNORE = ".gitignore"  # the run's cached outputs (cached_outputs), written with params.yaml and dvc.yaml
 PYTHON = ".venv/bin/python"  # how every root stage command starts
 HEADER = ("# Written by `python -m wc.run_folder {folder}` from {config} and the root dvc.yaml; edit those, not this"
           " file.\n")
@@ -171,7 +173,16 @@ def write_run_folder(folder: str | Path, root: str | Path = ".") -> dict[str, An
     header = HEADER.format(folder=folder.as_posix(), config=CONFIG)
     for name, data in (("params.yaml", params), ("dvc.yaml", pipeline)):
         (folder / name).write_text(header + yaml.safe_dump(data, sort_keys=False, width=120))
+    (folder / IGNORE).write_text(header + "".join(f"/{path}\n" for path in cached_outputs(pipeline, params)))
     return {"folder": str(folder), "stages": list(pipeline["stages"]), "targets": targets}
+
+
+def cached_outputs(pipeline: dict[str, Any], params: dict[str, Any]) -> list[str]:
+    """The outputs of a run's stages that DVC caches (git keeps the rest), relative to the run folder. The folder's
+    .gitignore lists them, so a run made where DVC has no git (a GPU machine's copy, `core.no_scm`) is committed
+    without them."""
+    return [path for stage in pipeline["stages"].values()
+            for path, options in _entries(stage, OUTPUTS, params) if options.get("cache") is not False]
 
 
 def record_files(folder: str | Path) -> list[str]:
@@ -181,7 +192,7 @@ def record_files(folder: str | Path) -> list[str]:
     params = yaml.safe_load((folder / "params.yaml").read_text())
     outs = [path for stage in yaml.safe_load((folder / "dvc.yaml").read_text())["stages"].values()
             for path, options in _entries(stage, OUTPUTS, params) if options.get("cache") is False]
-    names = [CONFIG, "params.yaml", "dvc.yaml", "dvc.lock", *outs]
+    names = [CONFIG, "params.yaml", "dvc.yaml", IGNORE, "dvc.lock", *outs]
     return [(folder / n).as_posix() for n in names if (folder / n).is_file()]
 
 
