@@ -18,7 +18,7 @@ import torch
 from safetensors.torch import load_file
 
 from wc.train.train_stage import run
-from tests.conftest import ROOT, default_params
+from tests.conftest import ROOT, default_params, load_params
 from tests.synthetic_store import write_synthetic_store
 from wc.config import ParamsError, load_section
 from wc.data.store import TrajectoryStore
@@ -33,7 +33,7 @@ from wc.train.data import (LayoutBatchSampler, data_scales, episode_phases, over
 from wc.train.events import event_frames
 from wc.train.evaluation import segment_loss
 from wc.train.schedule import learning_rate
-from wc.train.selection import max_edge_strain, selection_score
+from wc.train.selection import max_edge_strain, selection_score, shipped_stage
 
 EPISODES = [("fall", "train"), ("carry", "train"), ("handoff", "train"), ("fall", "train"), ("fall", "val"),
             ("carry", "val")]
@@ -275,6 +275,27 @@ def test_edge_strain_and_selection_scores():
     assert selection_score(good, "val_loss") == 5.0 and selection_score(good, "rollout") == 1e-4
     assert selection_score({**good, "rollout_diverged": 1}, "rollout") == float("inf")
     assert selection_score({**good, "rollout_position_mse_m2": float("nan")}, "rollout") == float("inf")
+
+
+def test_the_shipped_stage_is_the_better_scored_or_the_last_that_ran():
+    scores = {"base": 12.0, "projection": 15.0}  # the projection's corrections cost it on windows
+    assert shipped_stage(scores, "best") == "base" and shipped_stage(scores, "last") == "projection"
+    assert shipped_stage({"base": 12.0}, "last") == "base"  # no projection steps: the base stage is the last
+    with pytest.raises(ValueError, match="ship_stage must be one of"):
+        shipped_stage(scores, "final")
+    with pytest.raises(ValueError, match="ship_stage must be one of"):
+        load_section(load_params("train.ship_stage=final"), "train", TrainConfig)
+
+
+@pytest.mark.slow
+def test_ship_stage_last_ships_the_projection_stage(store_path, params, tmp_path):
+    """Whatever the scores, `last` ships the projection stage's best checkpoint, which applies the projection."""
+    p = copy.deepcopy(params)
+    p["train"]["ship_stage"] = "last"
+    report = run(p, store_path, tmp_path / "m", tmp_path / "r.json", tmp_path / "c.csv")
+    assert report["final_stage"] == "projection"
+    _, meta = load_model(tmp_path / "m" / "model.safetensors")
+    assert meta["stage"] == "projection" and meta["projection"] is True
 
 
 @pytest.mark.slow

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
-from wc.train.selection import SELECT_BY
+from wc.train.selection import SELECT_BY, SHIP_STAGES
 
 
 @dataclass(frozen=True)
@@ -52,6 +52,7 @@ class TrainConfig:
     event_margin_frames: int = 2  # ... within this many frames of one
     event_accel_m_s2: float = 8.0  # a vertex accelerating beyond this between frames is an impact event
     select_max_strain: float = 1.0  # rollout: a rollout with a rest edge stretched beyond this has diverged (never selected)
+    ship_stage: str = "best"  # best: the stage whose best checkpoint scores lower | last: the projection stage if it ran
     holdout_fraction: float = 0.25  # with no val split: this share of each train episode validates ...
     holdout_block_frames: int = 12  # ... as interleaved blocks of this many frames (wc.train.data.split_blocks)
     stats_episodes: int = 32  # episodes read to set the input/output scales
@@ -105,6 +106,8 @@ class TrainConfig:
                              f"{self.event_oversample}, {self.event_margin_frames}, {self.event_accel_m_s2}")
         if self.select_by not in SELECT_BY:
             raise ValueError(f"select_by must be one of {SELECT_BY}, got {self.select_by!r}")
+        if self.ship_stage not in SHIP_STAGES:
+            raise ValueError(f"ship_stage must be one of {SHIP_STAGES}, got {self.ship_stage!r}")
         if not self.select_max_strain > 0:
             raise ValueError(f"select_max_strain must be positive, got {self.select_max_strain}")
         if not self.fine_tune_lr_scale > 0:

@@ -38,7 +38,7 @@ from wc.train.data import (LayoutBatchSampler, LayoutKey, Phase, Scales, Window,
                            phases_of, split_blocks, windows_of)
 from wc.train.events import window_weights
 from wc.train.evaluation import rollout_error, segment_loss, validation_losses
-from wc.train.selection import selection_score
+from wc.train.selection import selection_score, shipped_stage
 from wc.train.noise import noisy_state
 from wc.train.warm_start import pretrained_model
 from wc.train.resident import ResidentWindows
@@ -307,12 +307,12 @@ def _finish(model: WorldContact, work: Path, out_dir: Path, cfg: TrainConfig, da
             history: list[dict[str, Any]], step_times: list[float], procs: distributed.Processes) -> dict[str, Any]:
     """Promote the best stage's best weights to model.*, rename the work dir into place, build the report.
 
-    Both stages' validation losses compare rollouts with the truth on the same windows, so the projection
-    stage's model ships only when it validates better than the base stage's.
+    `train.ship_stage` says which stage (wc/train/selection.py): `best` compares both stages' best scores on the same
+    windows, `last` ships the projection stage whenever it ran.
     """
     best = {stage: min((h["score"] for h in history if h["stage"] == stage), default=float("inf"))
             for stage in ("base", "projection") if (work / f"{stage}.safetensors").is_file()}
-    final = min(best, key=lambda stage: best[stage])
+    final = shipped_stage(best, cfg.ship_stage)
     if not np.isfinite(best[final]) and cfg.select_by == "rollout":
         print(f"train: WARNING every evaluation's held-out rollouts diverged; shipping the {final} stage's first "
               "checkpoint", flush=True)

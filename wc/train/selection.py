@@ -5,6 +5,11 @@
 from each val-split episode phase), and no checkpoint whose rollouts diverge - a non-finite state or a rest edge
 stretched beyond `train.select_max_strain` at any frame - is ever chosen: a model that wins on short windows but
 tears the cloth over a long horizon is what long-horizon generation must not get.
+
+Which stage ships (`train.ship_stage`): `best`, the stage whose best checkpoint scores lower; `last`, the last stage
+that ran (projection, when it has steps). The projection's corrections count against it on windows, so `best` can ship
+a base-stage model without the topology projection even after fine-tuning a projection-stage one
+(reports/gpu/gpu_policy_run_h200.md: edge strain 0.80 against 0.15, a third of the generated lifts blew up).
 """
 
 from __future__ import annotations
@@ -15,6 +20,7 @@ from typing import Any
 import torch
 
 SELECT_BY = ("val_loss", "rollout")
+SHIP_STAGES = ("best", "last")
 
 
 def max_edge_strain(x: torch.Tensor, edges: torch.Tensor, rest_lengths: torch.Tensor) -> float:
@@ -36,3 +42,12 @@ def selection_score(losses: dict[str, Any], select_by: str) -> float:
     if losses.get("rollout_diverged", 1) > 0 or not math.isfinite(mse):
         return math.inf
     return mse
+
+
+def shipped_stage(best: dict[str, float], ship_stage: str) -> str:
+    """The stage whose best checkpoint ships, from each stage's best score (stages in training order)."""
+    if ship_stage not in SHIP_STAGES:
+        raise ValueError(f"train.ship_stage must be one of {SHIP_STAGES}, got {ship_stage!r}")
+    if not best:
+        raise ValueError("no stage saved a checkpoint")
+    return list(best)[-1] if ship_stage == "last" else min(best, key=lambda stage: best[stage])
