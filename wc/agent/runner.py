@@ -14,7 +14,7 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
@@ -28,12 +28,10 @@ from wc.scene.scene import OBJECT_KINDS, Scene, build_scene
 from wc.seeds import episode_seed
 from wc.sim.config import SimConfig
 from wc.sim.kinematic import pose_twists, transform_points
+from wc.sim.newton_sim import NewtonSimulator
 from wc.tasks.base import UNREACHABLE, EpisodeSpec, InfeasibleEpisode, Task
 from wc.tasks.motion import ARM_COLUMNS
 from wc.validate import ValidateConfig, first_failure
-
-if TYPE_CHECKING:  # Newton (~5 s to import) only where a task world is built: expand imports this module without it
-    from wc.sim.newton_sim import NewtonSimulator
 
 
 @dataclass(frozen=True)
@@ -99,8 +97,6 @@ class TaskWorld:
 
 
 def build_task_world(scene_cfg: SceneConfig, sim_cfg: SimConfig, task: Task) -> TaskWorld:
-    from wc.sim.newton_sim import NewtonSimulator
-
     held = task.held()
     handoff = tuple(getattr(task, "handoff", ()))
     unknown = [o for o in handoff if o not in held or o not in task.objects]
