@@ -12,6 +12,7 @@ import yaml
 from tests.conftest import ROOT
 from wc.config import ParamsError, load_section, read_params
 from wc.run_folder import needed_stages, record_files, resolve_config, run_pipeline, write_run_folder
+from wc.smoke import smoke_label
 
 ROOT_DVC = yaml.safe_load((ROOT / "dvc.yaml").read_text())
 PARAMS = read_params(ROOT / "params.yaml")
@@ -68,6 +69,8 @@ def test_the_gpu_policy_run_is_valid_before_it_costs_gpu_time():
     assert (folder / built["train"].init_from / "model.safetensors").is_file()
     assert inputs == [] and needed_stages(ROOT_DVC["stages"], targets, params) == [
         "simulate", "validate", "train", "render", "dataset", "expand", "finetune", "policy_eval"]
+    stages = needed_stages(ROOT_DVC["stages"], targets, params)
+    assert not [s for s in stages if smoke_label(params, s)], "a GPU result labelled a smoke run"
 
 
 def test_write_run_folder_resolves_the_params_and_keeps_the_root_untouched(tmp_path):
