@@ -177,12 +177,12 @@ def write_run_folder(folder: str | Path, root: str | Path = ".") -> dict[str, An
     return {"folder": str(folder), "stages": list(pipeline["stages"]), "targets": targets}
 
 
-def cached_outputs(pipeline: dict[str, Any], params: dict[str, Any]) -> list[str]:
-    """The outputs of a run's stages that DVC caches (git keeps the rest), relative to the run folder. The folder's
-    .gitignore lists them, so a run made where DVC has no git (a GPU machine's copy, `core.no_scm`) is committed
-    without them."""
+def cached_outputs(pipeline: dict[str, Any], params: dict[str, Any], cached: bool = True) -> list[str]:
+    """The outputs of a run's stages that DVC caches (or, `cached` false, those it does not: git keeps them),
+    relative to the run folder. The folder's .gitignore lists the cached ones, so a run made where DVC has no git (a
+    GPU machine's copy, `core.no_scm`) is committed without them."""
     return [path for stage in pipeline["stages"].values()
-            for path, options in _entries(stage, OUTPUTS, params) if options.get("cache") is not False]
+            for path, options in _entries(stage, OUTPUTS, params) if (options.get("cache") is not False) is cached]
 
 
 def record_files(folder: str | Path) -> list[str]:
@@ -190,8 +190,7 @@ def record_files(folder: str | Path) -> list[str]:
     not cache (its reports), those that exist, as paths under `folder`."""
     folder = Path(folder)
     params = yaml.safe_load((folder / "params.yaml").read_text())
-    outs = [path for stage in yaml.safe_load((folder / "dvc.yaml").read_text())["stages"].values()
-            for path, options in _entries(stage, OUTPUTS, params) if options.get("cache") is False]
+    outs = cached_outputs(yaml.safe_load((folder / "dvc.yaml").read_text()), params, cached=False)
     names = [CONFIG, "params.yaml", "dvc.yaml", IGNORE, "dvc.lock", *outs]
     return [(folder / n).as_posix() for n in names if (folder / n).is_file()]
 
