@@ -22,6 +22,7 @@ from wc.config import ParamsError
 from wc.data.store import TrajectoryStore
 from wc.policy.comparison import FLAG
 from wc.policy.dataset import PROVENANCE_FILE, fps_of, right_arm_state_action, select_episodes
+from wc.policy.dataset_shards import shard_bounds
 from wc.policy.dataset_stage import build_datasets
 from wc.policy.video_frame_check import missing_video_frames
 from wc.render.frames import RenderedStore, RenderedWriter
@@ -181,6 +182,37 @@ def test_card_and_atomic_output(built: dict[str, Any]) -> None:
     assert sorted(p.name for p in built["out"].iterdir()) == ["expanded", "source"]  # no temporary left behind
 
 
+def test_shard_bounds_cover_the_episodes_in_order() -> None:
+    assert shard_bounds(10, 3) == [(0, 3), (3, 7), (7, 10)]
+    assert shard_bounds(2, 8) == [(0, 1), (1, 2)]  # never an empty shard
+    assert shard_bounds(5, 1) == [(0, 5)]
+    with pytest.raises(ValueError, match="shards >= 1"):
+        shard_bounds(5, 0)
+
+
+@pytest.mark.slow
+def test_datasets_written_in_shards_equal_the_serial_ones(built: dict[str, Any], tmp_path: Path,
+                                                          params: dict[str, Any], inputs: dict[str, Path]) -> None:
+    """dataset.workers 3: the expanded dataset's 4 episodes are written by 3 processes and joined by lerobot's
+    aggregation; every frame (state, action, indices, decoded pixels) and the provenance equal the serial build's,
+    and the params hash ignores the worker count."""
+    sharded = copy.deepcopy(params)
+    sharded["dataset"]["workers"] = 3
+    report = build_datasets(sharded, **inputs, out=tmp_path / "lerobot", report=tmp_path / "r.json")
+    assert report["params_hash"] == built["report"]["params_hash"]
+    for name in ("source", "expanded"):
+        serial, parallel = _load(built["out"], name), _load(tmp_path / "lerobot", name)
+        assert (parallel.num_episodes, parallel.num_frames) == (serial.num_episodes, serial.num_frames)
+        assert missing_video_frames(tmp_path / "lerobot" / name) == []
+        a, b = _all_frames(serial), _all_frames(parallel)
+        assert sorted(a) == sorted(b)
+        for key in a:
+            np.testing.assert_array_equal(b[key], a[key], err_msg=f"{name}: {key}")
+        assert ((tmp_path / "lerobot" / name / PROVENANCE_FILE).read_text()
+                == (built["out"] / name / PROVENANCE_FILE).read_text())
+    assert sorted(p.name for p in (tmp_path / "lerobot").iterdir()) == ["expanded", "source"]  # no shard left
+
+
 def test_missing_expanded_inputs_fail_before_writing(tmp_path: Path, params: dict[str, Any],
                                                      inputs: dict[str, Path]) -> None:
     args = {**inputs, "expanded_trajectories": tmp_path / "absent.zarr"}
@@ -293,6 +325,10 @@ def test_bad_params_name_the_key(params: dict[str, Any], inputs: dict[str, Path]
     bad = copy.deepcopy(params)
     bad["dataset"]["expanded_arm"] = "source"  # would overwrite the source dataset
     with pytest.raises(ParamsError, match="dataset.expanded_arm"):
+        build_datasets(bad, **inputs, out=tmp_path, report=tmp_path / "r.json")
+    bad = copy.deepcopy(params)
+    bad["dataset"]["workers"] = 0
+    with pytest.raises(ParamsError, match="dataset.workers"):
         build_datasets(bad, **inputs, out=tmp_path, report=tmp_path / "r.json")
 
 

@@ -10,7 +10,8 @@ store action[k] and it moves to action[k+1] during frame k -> k+1. So, per frame
 
 hence action[k] == observation.state[k + 1] within an episode. Videos are encoded by lerobot's own
 writer (`LeRobotDataset.create` -> `add_frame` -> `save_episode` -> `finalize`) into a temporary
-sibling directory that is renamed into place once the dataset is complete.
+sibling directory that is renamed into place once the dataset is complete; with `dataset.workers` > 1,
+contiguous shards of the episodes are written side by side and joined in order (wc.policy.dataset_shards).
 """
 
 from __future__ import annotations
@@ -131,6 +132,29 @@ def create_dataset(root: Path, repo_id: str, fps: int, height: int, width: int, 
                                  streaming_encoding=False, video_backend=VIDEO_BACKEND)  # streaming drops frames
 
 
+def write_episodes(root: Path, repo_id: str, fps: int, height: int, width: int, cfg: DatasetConfig,
+                   episodes: Sequence[EpisodeSource], desc: str | None) -> int:
+    """Write `episodes` in order as a new LeRobot dataset at `root`, one after the other; returns the frame count.
+    `desc` labels the progress bar (None: no bar)."""
+    ds = create_dataset(root, repo_id, fps, height, width, cfg)
+    frames = 0
+    for e in tqdm(episodes, desc=desc, unit="episode", disable=desc is None):
+        state, action = right_arm_state_action(e.trajectories.read_episode(e.episode_id, ("action",))["action"])
+        images = {cam: e.frames.frames(e.episode_id, cam) for cam in CAMERAS}
+        for k in range(len(state)):
+            ds.add_frame({"observation.state": state[k], "action": action[k], "task": cfg.instruction,
+                          **{feature: images[cam][k] for cam, feature in CAMERAS.items()}})
+        ds.save_episode(parallel_encoding=False)  # one process per dataset (or shard): cores go to the shards
+        frames += len(state)
+    ds.finalize()
+    return frames
+
+
+def _temporary(out: Path) -> Path:
+    """A fresh temporary sibling of `out` that `remove_stale_temporaries` removes once this process is gone."""
+    return out.with_name(f".{out.name}.tmp-{os.getpid()}-{secrets.token_hex(4)}")
+
+
 def _check_target(path: Path) -> None:
     """Refuse to replace anything but a LeRobot dataset (meta/info.json) or an empty directory."""
     if path.is_symlink() or (path.exists() and not path.is_dir()):
@@ -172,19 +196,14 @@ def write_lerobot_dataset(out: str | Path, repo_id: str, episodes: Sequence[Epis
     started = time.perf_counter()
     out.parent.mkdir(parents=True, exist_ok=True)
     remove_stale_temporaries(out)
-    tmp = out.with_name(f".{out.name}.tmp-{os.getpid()}-{secrets.token_hex(4)}")
+    tmp, scratch = _temporary(out), _temporary(out)
     try:
-        ds = create_dataset(tmp, repo_id, fps, height, width, cfg)
-        frames = 0
-        for e in tqdm(episodes, desc=f"dataset {out.name}", unit="episode"):
-            state, action = right_arm_state_action(e.trajectories.read_episode(e.episode_id, ("action",))["action"])
-            images = {cam: e.frames.frames(e.episode_id, cam) for cam in CAMERAS}
-            for k in range(len(state)):
-                ds.add_frame({"observation.state": state[k], "action": action[k], "task": cfg.instruction,
-                              **{feature: images[cam][k] for cam, feature in CAMERAS.items()}})
-            ds.save_episode(parallel_encoding=False)  # one process: the stage runs on 2 shared cores
-            frames += len(state)
-        ds.finalize()
+        if cfg.workers > 1 and len(episodes) > 1:
+            from wc.policy.dataset_shards import write_shards  # it builds on this module's writer
+
+            frames = write_shards(tmp, scratch, repo_id, fps, height, width, cfg, list(episodes))
+        else:
+            frames = write_episodes(tmp, repo_id, fps, height, width, cfg, episodes, f"dataset {out.name}")
         missing = missing_video_frames(tmp)
         if missing:
             raise RuntimeError(f"dataset {out.name}: frames missing from the encoded videos ({len(missing)} episode "
@@ -201,6 +220,8 @@ def write_lerobot_dataset(out: str | Path, repo_id: str, episodes: Sequence[Epis
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
     summary["wall_s"] = time.perf_counter() - started
     return summary
 

@@ -27,6 +27,7 @@ class DatasetConfig:
     encoder_threads: int  # threads per video encoder (0: let the codec decide)
     expanded_arm: str = "expanded"  # name of the dataset source + expanded-store episodes; another name builds a
     # control arm from another store, e.g. newton_150 = the source + fresh Newton episodes (policy comparison)
+    workers: int = 1  # processes writing a dataset's episodes side by side (shards joined by lerobot's aggregation)
 
     def validate(self) -> None:
         for name in ("task", "instruction", "robot_type"):
@@ -49,5 +50,7 @@ class DatasetConfig:
             raise ValueError(f"dataset.video_crf must be in [0, 63], got {self.video_crf}")
         if self.video_gop_frames < 1:
             raise ValueError(f"dataset.video_gop_frames must be >= 1, got {self.video_gop_frames}")
+        if self.workers < 1:
+            raise ValueError(f"dataset.workers must be >= 1, got {self.workers}")
         if self.encoder_threads < 0:
             raise ValueError(f"dataset.encoder_threads must be >= 0, got {self.encoder_threads}")

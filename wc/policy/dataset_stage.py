@@ -17,7 +17,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from wc.config import load_section, params_hash
+from wc.config import load_section, params_hash, without_keys
 from wc.data.store import TrajectoryStore
 from wc.paths import DATASET
 from wc.policy.card import dataset_card
@@ -49,7 +49,7 @@ def build_datasets(params: dict[str, Any],
     """Write <out>/source (and <out>/expanded) and the report; returns the report."""
     cfg = load_section(params, "dataset", DatasetConfig)
     started = time.perf_counter()
-    digest = params_hash(params, SECTIONS)
+    digest = params_hash(without_keys(params, "dataset", ("workers",)), SECTIONS)  # same data, any workers
     out = Path(out)
     paths = {"source trajectories": Path(source_trajectories), "source frames": Path(source_frames)}
     if cfg.include_expanded:
