@@ -142,6 +142,22 @@ def test_a_run_resumes_stage_by_stage_and_round_trips_through_the_remote(project
     assert "Running stage" not in again and skipped("train_baselines") in again
 
 
+def test_force_reruns_a_record_whose_outputs_no_remote_holds(project):
+    """A committed record on a machine whose remote lacks its outputs (a bare GPU machine, say): a plain run skips
+    the recorded stage and leaves no output; FORCE=1 reruns it."""
+    driver = ["bash", "scripts/gpu/run_pipeline.sh", "run", RUN, "train"]
+    sh(project, *driver)
+    sh(project, "git", "add", "-A")
+    sh(project, "git", "commit", "-q", "--allow-empty", "-m", "the tiny run's train record")
+    lonely = project.parent / "lonely"  # a remote with the run's input store only
+    dvc(project, "remote", "add", "--local", "-f", "lonely", str(lonely))
+    dvc(project, "push", "-r", "lonely", f"{STORE}.dvc")
+    fresh = checkout(project, project.parent / "fresh", lonely)
+    assert skipped("train") in sh(fresh, "env", "PUSH=0", *driver) and not (fresh / OUTPUTS[1]).exists()
+    assert running("train") in sh(fresh, "env", "PUSH=0", "FORCE=1", *driver)
+    assert (fresh / OUTPUTS[1]).exists()
+
+
 def wheel_file(folder: Path, name: str) -> None:
     """A minimal pure-Python wheel of package `name` (as `pip download` leaves one) in `folder`."""
     import zipfile  # noqa: PLC0415

@@ -47,6 +47,27 @@ def test_summary_writes_the_metric_and_the_results_page(tmp_path, capsys):
     assert "missing: " in capsys.readouterr().out
 
 
+def test_the_run_folders_policy_results_are_on_the_page(tmp_path):
+    """runs/<name>/reports/policy.json (a GPU run through DVC) is read as a policy evaluation: per arm with its
+    interval, under the run's name, above the last repro's figures; one lacking a declared field is named."""
+    reports = _reports(tmp_path)
+    run = tmp_path / "runs" / "gpu_x" / "reports"
+    run.mkdir(parents=True)
+    arm = {"successes": 45, "trials": 50}
+    policy = {"policies": {"source": arm, "expanded": {**arm, "successes": 48}}, "policy_type": "act",
+              "task": "lift_handle", "lift_height_m": 0.05, "hold_s": 2.0}
+    (run / "policy.json").write_text(json.dumps(policy))
+    write_summary(reports, reports / "h.json", reports / "R.md")
+    page = (reports / "R.md").read_text()
+    line = next(x for x in page.splitlines() if x.startswith("- **`runs/gpu_x`**"))
+    assert "source 45/50 (0.79-0.96)" in line and "expanded 48/50 (0.87-0.99)" in line
+    assert page.index("runs/gpu_x") < page.index("## The last `dvc repro`")
+    del policy["task"]
+    (run / "policy.json").write_text(json.dumps(policy))
+    with pytest.raises(ValueError, match="task"):
+        write_summary(reports, reports / "h.json", reports / "R.md")
+
+
 def test_a_corrupt_report_is_named(tmp_path):
     reports = _reports(tmp_path)
     (reports / "train.json").write_text("{not json")

@@ -287,6 +287,14 @@ def kind_of(name: str) -> ReportKind:
                         "in wc/report_kinds.py")
 
 
+def kind_named(name: str) -> ReportKind:
+    """The report kind called `name` (e.g. "policy evaluation"); KeyError naming the kinds when there is none."""
+    for kind in KINDS:
+        if kind.name == name:
+            return kind
+    raise KeyError(f"no report kind {name!r}; kinds: {[k.name for k in KINDS]}")
+
+
 def report_headline(path: Path) -> tuple[str, str]:
     """(kind name, headline line) of the GPU report at `path`; HeadlineError (a ValueError) when it is not JSON,
     no kind matches it or it lacks a declared field."""

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from wc.report_kinds import report_headline
+from wc.report_kinds import kind_named, report_headline
 
 SMOKE_TRIALS = 20  # fewer closed-loop trials per policy than this: a smoke run (a 95 % interval wider than ~0.4)
 
@@ -67,8 +67,10 @@ def _fmt(value: Any) -> str:
 
 
 def results_markdown(rows: Sequence[tuple[str, str, str]], figures: dict[str, Any], labels: Sequence[Any],
-                     policy: dict[str, Any] | None, smoke: dict[str, str] | None = None) -> str:
-    """The page: featured GPU headlines, the last repro's `figures` (one row per `labels` entry: a Headline with
+                     policy: dict[str, Any] | None, smoke: dict[str, str] | None = None,
+                     runs: Sequence[tuple[str, str]] = ()) -> str:
+    """The page: featured GPU headlines, the run folders' policy results (`runs` from `run_folder_headlines`), the
+    last repro's `figures` (one row per `labels` entry: a Headline with
     key, label, report, path) under its smoke label, each marked with its report's smoke-run label (`smoke`:
     {report file: label}, params `smoke_run`) or `measured`, then every GPU report (`rows` from `gpu_headlines`)."""
     smoke = smoke or {}
@@ -78,6 +80,9 @@ def results_markdown(rows: Sequence[tuple[str, str, str]], figures: dict[str, An
     for f in FEATURED:
         if f.report in by_name:
             lines.append(f"- **{f.title}**: {by_name[f.report][1]}. [Write-up]({f.write_up}), `gpu/{f.report}`.")
+    if runs:
+        lines += ["", "## GPU runs through DVC (`runs/`: each one's `dvc.lock` records its params, code and outputs)", ""]
+        lines += [f"- **`{name}`** ([config]({'../' + name}/config.yaml)): {line}." for name, line in runs]
     lines += ["", "## The last `dvc repro`", "", smoke_label(policy)]
     if smoke:
         lines += ["", "Smoke runs (params `smoke_run`: too few trials, plans or steps for their figures to mean "
@@ -90,6 +95,14 @@ def results_markdown(rows: Sequence[tuple[str, str, str]], figures: dict[str, An
               "its headline (`wc/report_kinds.py`).", "", "| report | kind | headline |", "|---|---|---|"]
     lines += [f"| `{name}` | {kind} | {line} |" for name, kind, line in rows]
     return "\n".join(lines) + "\n"
+
+
+def run_folder_headlines(runs: Path) -> list[tuple[str, str]]:
+    """(run folder, headline) for every run folder's policy evaluation (`runs/<name>/reports/policy.json`: a GPU
+    configuration run through DVC, its record `runs/<name>/dvc.lock`), read as a "policy evaluation" report."""
+    kind = kind_named("policy evaluation")
+    return [(f"runs/{path.parent.parent.name}", kind.headline(json.loads(path.read_text()), str(path)))
+            for path in sorted(runs.glob("*/reports/policy.json"))]
 
 
 def read_policy_report(reports: Path) -> dict[str, Any] | None:

@@ -12,7 +12,7 @@ from typing import Any
 from wc.atomic import write_atomic
 from wc.paths import SUMMARY
 from wc.reports import write_json_atomic
-from wc.results_page import gpu_headlines, read_policy_report, results_markdown
+from wc.results_page import gpu_headlines, read_policy_report, results_markdown, run_folder_headlines
 from wc.smoke import REPORT_KEY
 
 
@@ -100,7 +100,7 @@ def write_summary(reports: Path, headline: Path, results: Path) -> dict[str, Any
     ValueError) and nothing is written."""
     figures = headline_figures(reports)
     text = results_markdown(gpu_headlines(reports), figures, HEADLINES, read_policy_report(reports),
-                            smoke_runs(reports))
+                            smoke_runs(reports), run_folder_headlines(reports.parent / "runs"))
     write_json_atomic(headline, {h.key: figures[h.key] for h in HEADLINES if h.metric})
     write_atomic(results, lambda p: p.write_text(text))
     return figures

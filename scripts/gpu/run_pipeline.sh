@@ -16,6 +16,8 @@
 #                  tmp/site/<unpacked wheels>; scripts/gpu/missing_wheels.py lists what a machine lacks.
 #                  Without it: scripts/install.sh (network) unless .venv exists.
 #   PUSH=0         skip the final `dvc push` of the run's outputs to the default remote (.dvc/config)
+#   FORCE=1        `run` starts the record afresh (removes RUN/dvc.lock): for a committed record whose outputs no cache
+#                  or remote here holds (DVC would skip the recorded stages and fail where a later one needs them)
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 PY=.venv/bin/python
@@ -68,6 +70,7 @@ run() {
   [ -f "$run/config.yaml" ] || fail "no $run/config.yaml (a run folder, e.g. runs/gpu_policy)"
   setup
   $PY -m wc.run_folder "$run"
+  [ -z "${FORCE:-}" ] || rm -f "$run/dvc.lock"  # a fresh record: every stage runs (git keeps the committed one)
   dvc_in "$run" repro --pull --allow-missing ${stage:+"dvc.yaml:$stage"}
   [ "${PUSH:-1}" = 0 ] || dvc_in "$run" push --with-deps dvc.yaml
 }
