@@ -120,6 +120,7 @@ def test_a_run_resumes_stage_by_stage_and_round_trips_through_the_remote(project
     first = sh(project, *driver, "train")  # a run cut short: train only, pushed to the remote
     assert running("train") in first and running("train_baselines") not in first
     assert list(yaml.safe_load((project / RUN / "dvc.lock").read_text())["stages"]) == ["train"]
+    assert all(s["frozen"] for s in yaml.safe_load((project / RUN / "dvc.yaml").read_text())["stages"].values())
     sh(project, "git", "add", "-A")
     sh(project, "git", "commit", "-qm", "the tiny run, up to train")
 

@@ -87,6 +87,11 @@ def test_write_run_folder_resolves_the_params_and_keeps_the_root_untouched(tmp_p
     assert params == {k: v for k, v in expected.items() if k != "_source"}  # every value; no `pipeline` section
     assert yaml.safe_load((folder / "dvc.yaml").read_text())["stages"]["train"]["cmd"].startswith("../../.venv/")
     assert (tmp_path / "dvc.yaml").read_text() == (ROOT / "dvc.yaml").read_text()
+    frozen = {n: s["frozen"] for n, s in yaml.safe_load((folder / "dvc.yaml").read_text())["stages"].items()}
+    assert set(frozen.values()) == {True}  # the root `dvc repro` leaves the run alone
+    write_run_folder(folder, tmp_path, frozen=False)  # the driver, to run it
+    assert not any(s["frozen"] for s in yaml.safe_load((folder / "dvc.yaml").read_text())["stages"].values())
+    write_run_folder(folder, tmp_path)
     (folder / "reports" / "ablations").mkdir(parents=True)
     for report in ("train.json", "ablations/no_contact_tokenizer.json"):  # cache-free outputs: part of the record
         (folder / "reports" / report).write_text("{}")
@@ -126,3 +131,6 @@ def test_the_generated_files_are_the_runs_record_not_hand_edits():
         for name in ("params.yaml", "dvc.yaml"):
             if (folder / name).is_file():
                 assert (folder / name).read_text().startswith("# Written by `python -m wc.run_folder"), folder / name
+        if (folder / "dvc.yaml").is_file():  # committed frozen: the root `dvc repro` (every dvc.yaml) skips it
+            stages = yaml.safe_load((folder / "dvc.yaml").read_text())["stages"].values()
+            assert all(stage.get("frozen") is True for stage in stages), folder

@@ -158,9 +158,10 @@ def run_pipeline(root: dict[str, Any], targets: list[str], params: dict[str, Any
     return pipeline
 
 
-def write_run_folder(folder: str | Path, root: str | Path = ".") -> dict[str, Any]:
+def write_run_folder(folder: str | Path, root: str | Path = ".", frozen: bool = True) -> dict[str, Any]:
     """Write `folder`/params.yaml and `folder`/dvc.yaml from `folder`/config.yaml and `root`/dvc.yaml; returns what
-    was written."""
+    was written. `frozen`: every stage of that dvc.yaml is frozen, so the root `dvc repro` (which collects every
+    dvc.yaml of the repository) leaves the run alone; the driver writes it unfrozen to run it, then frozen again."""
     folder, root = Path(folder), Path(root)
     config = folder / CONFIG
     if not config.is_file():
@@ -170,6 +171,8 @@ def write_run_folder(folder: str | Path, root: str | Path = ".") -> dict[str, An
         raise ParamsError(f"run_folder: {folder} is not inside the repository {root.resolve()}")
     params, targets, inputs = resolve_config(config)
     pipeline = run_pipeline(yaml.safe_load((root / "dvc.yaml").read_text()), targets, params, up, inputs)
+    for stage in pipeline["stages"].values():
+        stage["frozen"] = frozen
     header = HEADER.format(folder=folder.as_posix(), config=CONFIG)
     for name, data in (("params.yaml", params), ("dvc.yaml", pipeline)):
         (folder / name).write_text(header + yaml.safe_dump(data, sort_keys=False, width=120))
@@ -201,14 +204,16 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--root", default=".", help="the repository root (default: the current directory)")
     parser.add_argument("--record", action="store_true",
                         help="print the run's record files (one a line) instead of writing params.yaml and dvc.yaml")
+    parser.add_argument("--unfrozen", action="store_true",
+                        help="write dvc.yaml with its stages unfrozen, to run them (the default freezes them)")
     args = parser.parse_args(argv)
     if args.record:
         files = record_files(args.folder)
         print("\n".join(files))
         return {"folder": args.folder, "record": files}
-    written = write_run_folder(args.folder, args.root)
-    print(f"run_folder: {written['folder']}: params.yaml, dvc.yaml with {len(written['stages'])} stages "
-          f"({', '.join(written['stages'])})")
+    written = write_run_folder(args.folder, args.root, frozen=not args.unfrozen)
+    print(f"run_folder: {written['folder']}: params.yaml, dvc.yaml with {len(written['stages'])} "
+          f"{'unfrozen' if args.unfrozen else 'frozen'} stages ({', '.join(written['stages'])})")
     return written
 
 

@@ -69,9 +69,12 @@ run() {
   local run=${1%/} stage=${2:-}
   [ -f "$run/config.yaml" ] || fail "no $run/config.yaml (a run folder, e.g. runs/gpu_policy)"
   setup
-  $PY -m wc.run_folder "$run"
+  $PY -m wc.run_folder --unfrozen "$run"  # frozen as committed: the root `dvc repro` leaves run folders alone
   [ -z "${FORCE:-}" ] || rm -f "$run/dvc.lock"  # a fresh record: every stage runs (git keeps the committed one)
-  dvc_in "$run" repro --pull --allow-missing ${stage:+"dvc.yaml:$stage"}
+  local rc=0
+  dvc_in "$run" repro --pull --allow-missing ${stage:+"dvc.yaml:$stage"} || rc=$?
+  $PY -m wc.run_folder "$run"  # frozen again, whatever the repro did
+  [ "$rc" = 0 ] || exit "$rc"
   [ "${PUSH:-1}" = 0 ] || dvc_in "$run" push --with-deps dvc.yaml
 }
 
