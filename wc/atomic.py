@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import os
 import re
+import secrets
 import shutil
 from collections.abc import Callable
 from pathlib import Path
@@ -24,6 +25,12 @@ def temporary_pattern(path: Path) -> re.Pattern[str]:
     """Names of the temporaries of `path` (see the module docstring); group `pid` is the writer's process id."""
     name, suffix = re.escape(path.name), re.escape(path.suffix)
     return re.compile(rf"(?:\.?{name}\.tmp(?:-old)?|\.{name}\.old)-(?P<pid>\d+)(?:-[0-9a-f]+|{suffix})?")
+
+
+def temporary_sibling(path: Path) -> Path:
+    """A fresh hidden temporary directory name beside `path` (`.<name>.tmp-<pid>-<hex>`), which
+    `remove_stale_temporaries(path)` removes once this process is gone."""
+    return path.with_name(f".{path.name}.tmp-{os.getpid()}-{secrets.token_hex(4)}")
 
 
 def process_alive(pid: int) -> bool:

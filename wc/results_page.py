@@ -82,7 +82,7 @@ def results_markdown(rows: Sequence[tuple[str, str, str]], figures: dict[str, An
             lines.append(f"- **{f.title}**: {by_name[f.report][1]}. [Write-up]({f.write_up}), `gpu/{f.report}`.")
     if runs:
         lines += ["", "## GPU runs through DVC (`runs/`: each one's `dvc.lock` records its params, code and outputs)", ""]
-        lines += [f"- **`{name}`** ([config]({'../' + name}/config.yaml)): {line}." for name, line in runs]
+        lines += [f"- **`{name}`** ([config](../{name}/config.yaml)): {line}." for name, line in runs]
     lines += ["", "## The last `dvc repro`", "", smoke_label(policy)]
     if smoke:
         lines += ["", "Smoke runs (params `smoke_run`: too few trials, plans or steps for their figures to mean "

@@ -17,8 +17,6 @@ contiguous shards of the episodes are written side by side and joined in order (
 from __future__ import annotations
 
 import json
-import os
-import secrets
 import shutil
 import time
 from collections import Counter
@@ -30,7 +28,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from wc.atomic import remove_stale_temporaries
+from wc.atomic import remove_stale_temporaries, temporary_sibling
 from wc.data.store import ACTION_DIM, TrajectoryStore
 from wc.policy.dataset_config import DatasetConfig
 from wc.policy.video_frame_check import missing_video_frames
@@ -150,11 +148,6 @@ def write_episodes(root: Path, repo_id: str, fps: int, height: int, width: int, 
     return frames
 
 
-def _temporary(out: Path) -> Path:
-    """A fresh temporary sibling of `out` that `remove_stale_temporaries` removes once this process is gone."""
-    return out.with_name(f".{out.name}.tmp-{os.getpid()}-{secrets.token_hex(4)}")
-
-
 def _check_target(path: Path) -> None:
     """Refuse to replace anything but a LeRobot dataset (meta/info.json) or an empty directory."""
     if path.is_symlink() or (path.exists() and not path.is_dir()):
@@ -196,7 +189,7 @@ def write_lerobot_dataset(out: str | Path, repo_id: str, episodes: Sequence[Epis
     started = time.perf_counter()
     out.parent.mkdir(parents=True, exist_ok=True)
     remove_stale_temporaries(out)
-    tmp, scratch = _temporary(out), _temporary(out)
+    tmp, scratch = temporary_sibling(out), temporary_sibling(out)
     try:
         if cfg.workers > 1 and len(episodes) > 1:
             from wc.policy.dataset_shards import write_shards  # it builds on this module's writer

@@ -15,8 +15,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
-import secrets
 import shutil
 import sys
 import time
@@ -34,7 +32,7 @@ from lerobot.processor import PolicyProcessorPipeline
 from lerobot.utils.constants import ACTION, CHECKPOINTS_DIR, OBS_IMAGES, OBS_STATE
 from lerobot.utils.feature_utils import dataset_to_policy_features
 
-from wc.atomic import remove_stale_temporaries
+from wc.atomic import remove_stale_temporaries, temporary_sibling
 from wc.policy.comparison import SUMMARY_FILE
 from wc.policy.policy_config import PolicyConfig
 from wc.policy.pretrained import PretrainedFilesError, check_weights_loaded, checkpoint_weights, tokenizer_dir
@@ -143,7 +141,7 @@ def finetune(root: str | Path, out: str | Path, cfg: PolicyConfig, meta: dict[st
     config = policy_config(cfg, ds_meta)
     _check_replaceable(out)  # before training, not after
     remove_stale_temporaries(out)
-    scratch = out.with_name(f".{out.name}.tmp-{os.getpid()}-{secrets.token_hex(4)}")
+    scratch = temporary_sibling(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     scratch.mkdir()
     run_dir, keep = scratch / "lerobot_train", False

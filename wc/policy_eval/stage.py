@@ -13,7 +13,6 @@ directories fail before any episode runs.
 from __future__ import annotations
 
 import os
-import secrets
 import shutil
 import time
 from pathlib import Path
@@ -21,7 +20,7 @@ from typing import Any
 
 from tqdm import tqdm
 
-from wc.atomic import remove_stale_temporaries
+from wc.atomic import remove_stale_temporaries, temporary_sibling
 from wc.config import load_section, params_hash
 from wc.devices import resolve_warp_device
 from wc.model_ref import file_sha256
@@ -76,7 +75,7 @@ def run(params: dict[str, Any], models_root: str | Path = POLICY_EVAL["models_ro
     videos_dir = Path(videos_dir)
     videos_dir.parent.mkdir(parents=True, exist_ok=True)
     remove_stale_temporaries(videos_dir)
-    tmp_videos = videos_dir.with_name(f".{videos_dir.name}.tmp-{os.getpid()}-{secrets.token_hex(4)}")
+    tmp_videos = temporary_sibling(videos_dir)
     tmp_videos.mkdir()
     try:
         with tqdm(total=len(dirs) * cfg.trials, desc="policy_eval", unit="episode", disable=not progress) as bar:
