@@ -5,20 +5,15 @@ from __future__ import annotations
 
 import copy
 import json
-import os
-import socket
-import subprocess
-import sys
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
 import torch
-from safetensors.torch import load_file
 
 from wc.train.train_stage import run
-from tests.conftest import ROOT, default_params, load_params
+from tests.conftest import default_params, load_params
 from tests.synthetic_store import write_synthetic_store
 from wc.config import ParamsError, load_section
 from wc.data.store import TrajectoryStore
@@ -388,47 +383,3 @@ def test_missing_store_and_bad_params(params, tmp_path):
     with pytest.raises(ParamsError, match="model.tokenizer"):
         load_section(bad, "model", ModelConfig)
     load_section(params, "train", TrainConfig)
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def _train_final_weights(store_path: Path, out: Path, processes: int, static: bool) -> dict[str, Any]:
-    """The train stage on `processes` CPU processes (gloo; torchrun-style launch when more than one) through
-    tests/train_final_weights.py: two steps of the base stage, outputs under `out`, each rank's weights after the
-    last step in out/rank<k>.safetensors. Returns the report."""
-    overrides = ["train.init_from=''", f"train.static={str(static).lower()}", "train.base.steps=2",
-                 "train.base.warmup_steps=1", "train.projection.steps=0", "train.projection.warmup_steps=0",
-                 "train.eval_every_steps=2", "train.val_windows=1", "train.rollout_frames=2"]
-    launch = ([sys.executable, "-m", "torch.distributed.run", "--nproc-per-node", str(processes), "--master-port",
-               str(_free_port())] if processes > 1 else [sys.executable])
-    out.mkdir()
-    cmd = [*launch, "-m", "tests.train_final_weights", str(out), "--store", str(store_path), "--out", str(out / "m"),
-           "--report", str(out / "r.json"), "--curves", str(out / "c.csv"), *(a for o in overrides for a in ("--set", o))]
-    env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    done = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=ROOT, timeout=600)
-    assert done.returncode == 0, done.stderr[-3000:]
-    return json.loads((out / "r.json").read_text())
-
-
-@pytest.mark.slow
-@pytest.mark.parametrize("static", [False, True])
-def test_two_process_ddp_on_gloo(store_path, tmp_path, static):
-    """Two CPU processes (gloo) draw different windows; their gradients are averaged, so both end with the same
-    weights, and those differ from one process's trained on rank 0's windows alone (the same stream: the sampler is
-    seeded by rank). Rank 0 writes the output. Both the reference and the static-shape path."""
-    report = _train_final_weights(store_path, tmp_path / "ddp", 2, static)
-    assert report["processes"] == 2
-    rank0, rank1 = (load_file(tmp_path / "ddp" / f"rank{k}.safetensors") for k in (0, 1))
-    shipped = load_file(tmp_path / "ddp" / "m" / "last.safetensors")  # rank 0's last step, as the stage saved it
-    assert rank0.keys() == rank1.keys() == shipped.keys()
-    assert all(torch.equal(rank0[k], shipped[k]) for k in rank0)
-    assert [k for k in rank0 if not torch.equal(rank0[k], rank1[k])] == []
-    alone = _train_final_weights(store_path, tmp_path / "alone", 1, static)
-    assert alone["processes"] == 1
-    single = load_file(tmp_path / "alone" / "rank0.safetensors")
-    moved = max(float((single[k] - rank0[k]).abs().max()) for k in rank0)
-    assert moved > 1e-5, "two processes ended where one does on rank 0's windows: rank 1 drew the same windows"

@@ -145,11 +145,15 @@ class LayoutBatchSampler(torch.utils.data.Sampler[list[int]]):
 
     A layout is drawn with probability proportional to its window count (or its windows' summed `weights`), then
     windows uniformly (or in proportion to `weights`, e.g. wc.train.events); `rank` gives each process of a
-    distributed run its own stream.
+    distributed run its own stream of windows. With `shared_layouts` (a run of several processes) the layouts come
+    from a stream every rank shares, so all ranks step through the same layout's static step together (a captured
+    gradient all-reduce must be replayed by every rank in the same graph); alone, one stream draws both.
     """
 
+    SHARED = 2**31 - 1  # the layout stream's key beside the seed (never a rank)
+
     def __init__(self, windows: list[Window], batch_size: int, seed: int, rank: int = 0,
-                 weights: np.ndarray | None = None) -> None:
+                 weights: np.ndarray | None = None, shared_layouts: bool = False) -> None:
         if weights is not None and (len(weights) != len(windows) or not (np.asarray(weights) > 0).all()):
             raise ValueError(f"sampling weights must be {len(windows)} positive values, one per window")
         groups: dict[LayoutKey, list[int]] = {}
@@ -162,17 +166,26 @@ class LayoutBatchSampler(torch.utils.data.Sampler[list[int]]):
         self.within = None if weights is None else [window_w[g] / window_w[g].sum() for g in self.groups]
         self.batch_size = batch_size
         self.rng = np.random.default_rng([seed, rank])
+        self.layout_rng = np.random.default_rng([seed, self.SHARED]) if shared_layouts else self.rng
 
     def state(self) -> dict:
-        """The sampler's position in its stream (checkpointed for an exact resume)."""
-        return self.rng.bit_generator.state
+        """The sampler's position in its streams (checkpointed for an exact resume)."""
+        if self.layout_rng is self.rng:
+            return self.rng.bit_generator.state
+        return {"windows": self.rng.bit_generator.state, "layouts": self.layout_rng.bit_generator.state}
 
     def set_state(self, state: dict) -> None:
-        self.rng.bit_generator.state = state
+        if (self.layout_rng is self.rng) != ("layouts" not in state):
+            raise ValueError("training state: its sampler was saved with a different number of processes")
+        if self.layout_rng is self.rng:
+            self.rng.bit_generator.state = state
+        else:
+            self.rng.bit_generator.state = state["windows"]
+            self.layout_rng.bit_generator.state = state["layouts"]
 
     def __iter__(self):  # noqa: ANN204 - infinite iterator
         while True:
-            g = self.rng.choice(len(self.groups), p=self.weights)
+            g = self.layout_rng.choice(len(self.groups), p=self.weights)
             group = self.groups[g]
             if self.within is None:
                 yield group[self.rng.integers(0, len(group), size=self.batch_size)].tolist()

@@ -13,7 +13,8 @@ from __future__ import annotations
 import shutil
 import statistics
 import time
-from dataclasses import asdict, dataclass, replace
+from contextlib import nullcontext
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -128,6 +129,8 @@ class ReferenceSteps:
         layout = self.layout_for(self.dataset.layout_keys[int(batch["layout"][0])])
         x, v, poses = (batch[k].to(self.device) for k in ("x", "v", "poses"))
         loss = optimisation_step(self.runner, self.optimizer, layout, x, v, poses, self.dt, projector(layout), self.cfg)
+        if distributed.world_size() > 1:  # every rank sees the mean loss, so all stop on a non-finite one
+            loss = float(distributed.summed(torch.tensor([loss], device=self.device))) / distributed.world_size()
         if not np.isfinite(loss):
             raise FloatingPointError(f"train: loss became {loss} at step {step_number}")
         return loss
@@ -144,6 +147,16 @@ class StaticSteps:
         li, starts = self.resident.batch_location(next(self.sampler))
         layout = self.layout_for(self.resident.layout_keys[li])
         return self.trainer.step(li, layout, self.resident.layouts[li], starts, projector(layout), step_number)
+
+
+def rank_streams(state: dict[str, Any], procs: distributed.Processes) -> dict[str, Any]:
+    """This rank's sampler and RNG streams from a saved training state (a state saved before per-rank streams has
+    rank 0's alone). An exact resume needs the process count the state was saved with."""
+    ranks = state.get("ranks") or [{"sampler": state["sampler"], "rng": state["rng"]}]
+    if len(ranks) != procs.world_size:
+        raise ValueError(f"training state saved by {len(ranks)} process(es), resumed with {procs.world_size}: resume "
+                         f"with the same process count (torchrun --nproc-per-node {len(ranks)})")
+    return ranks[procs.rank]
 
 
 def train(store_path: str | Path, out_dir: str | Path, model_cfg: ModelConfig, cfg: TrainConfig, *,
@@ -169,7 +182,8 @@ def train(store_path: str | Path, out_dir: str | Path, model_cfg: ModelConfig, c
         model = WorldContact(model_cfg, **asdict(data.scales)).to(procs.device)
     layout_for = _layouts(store, model_cfg, procs.device)
     optimizer = make_optimizer(model, cfg, procs.device)
-    sampler = LayoutBatchSampler(data.train_windows, cfg.batch_size, cfg.seed, procs.rank, data.window_weights)
+    sampler = LayoutBatchSampler(data.train_windows, cfg.batch_size, cfg.seed, procs.rank, data.window_weights,
+                                 shared_layouts=procs.distributed)
     step, history, recent, best = 0, [], [], {"base": float("inf"), "projection": float("inf")}
     capacities, measured = None, None
     state_path = work / "last_state.pt"
@@ -181,25 +195,22 @@ def train(store_path: str | Path, out_dir: str | Path, model_cfg: ModelConfig, c
         if state.get("capacities"):
             capacities, measured = capacities_from_dict(state["capacities"]), state.get("measured_neighbors")
         recent = state.get("recent", [])
-        if procs.main:  # other ranks of a resumed DDP run draw fresh streams
-            sampler.set_state(state["sampler"])
-        else:
-            sampler = LayoutBatchSampler(data.train_windows, cfg.batch_size, cfg.seed + step, procs.rank,
-                                         data.window_weights)
+        streams = rank_streams(state, procs)
+        sampler.set_state(streams["sampler"])
     elif procs.main:
         shutil.rmtree(work, ignore_errors=True)
     distributed.barrier(procs)
     work.mkdir(parents=True, exist_ok=True)
     runner: nn.Module = SegmentRollout(model)
-    if procs.distributed:
-        runner = DistributedDataParallel(runner, device_ids=[procs.device] if procs.device.type == "cuda" else None)
+    graphed = cfg.static and cfg.cuda_graph and procs.device.type == "cuda"
+    if procs.distributed:  # built on a side stream where its backward will be captured in a CUDA graph (torch's rule)
+        with torch.cuda.stream(torch.cuda.Stream(procs.device)) if graphed else nullcontext():
+            runner = DistributedDataParallel(runner, device_ids=[procs.device] if procs.device.type == "cuda" else None)
     if cfg.static:
         if capacities is None:
             capacities, measured = data_capacities(store, data.train_phases, model_cfg, layout_for,
                                                    cfg.neighbor_headroom, procs.device)
         settings = StepSettings.of(cfg, store.dt)
-        if procs.distributed:  # DDP's gradient all-reduce runs outside a captured graph
-            settings = replace(settings, cuda_graph=False)
         trainer = StaticTrainer(model, runner, optimizer, capacities, settings)
         trainer.grown = list(state.get("neighbor_growth", [])) if state is not None else []
         steps: ReferenceSteps | StaticSteps = StaticSteps(
@@ -208,18 +219,22 @@ def train(store_path: str | Path, out_dir: str | Path, model_cfg: ModelConfig, c
         trainer = None
         steps = ReferenceSteps(store_path, data, sampler, runner, optimizer, cfg, store.dt, procs.device, layout_for)
 
-    if state is not None and procs.main:  # after the set-up above, which draws (e.g. the DataLoader's seed)
-        restore_rng_states(state["rng"], procs.device)
+    if state is not None:  # after the set-up above, which draws (e.g. the DataLoader's seed)
+        restore_rng_states(streams["rng"], procs.device)
 
     def neighbors_for(layout: SceneLayout) -> FixedNeighbors | None:
         return model.fixed_neighbors(layout, trainer.capacities) if trainer is not None else None
 
     def checkpoint() -> None:
+        """Rank 0 saves; every rank contributes its own sampler and RNG streams (a collective: all ranks call it)."""
+        ranks = distributed.gathered(procs, {"sampler": sampler.state(), "rng": rng_states(procs.device)})
+        if not procs.main:
+            return
         save_weights(model, work / "last.safetensors", {**meta, **static_meta(), "step": step, "stage": stage,
                                                         "projection": stage == "projection"})
         save_state(state_path, {"model": model.state_dict(), "optimizer": optimizer.state_dict(), "step": step,
-                                "history": history, "best": best, "recent": recent, "sampler": sampler.state(),
-                                "rng": rng_states(procs.device), **static_meta()})
+                                "history": history, "best": best, "recent": recent, **ranks[0], "ranks": ranks,
+                                **static_meta()})
 
     def static_meta() -> dict[str, Any]:
         if trainer is None:
@@ -261,8 +276,10 @@ def train(store_path: str | Path, out_dir: str | Path, model_cfg: ModelConfig, c
                              {**meta, **static_meta(), "step": step, "stage": stage,
                               "projection": stage == "projection", **losses})
         out_of_time = cfg.max_minutes > 0 and time.monotonic() - started > 60.0 * cfg.max_minutes
+        if procs.distributed and cfg.max_minutes > 0:  # the ranks' clocks differ: all stop when one is out of time
+            out_of_time = distributed.any_rank(out_of_time, procs.device)
         stopped = step < total and (out_of_time or (stop_at_step is not None and step >= stop_at_step))
-        if procs.main and (step % cfg.checkpoint_every_steps == 0 or stage_end or stopped):
+        if step % cfg.checkpoint_every_steps == 0 or stage_end or stopped:
             checkpoint()
     bar.close()
     distributed.barrier(procs)

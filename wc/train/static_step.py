@@ -4,12 +4,14 @@ A step is two parts with one host read between them:
 1. forward + backward: the batch's windows gathered on the device from `LayoutFrames`, the W-step rollout with
    fixed-K neighbours (`FixedNeighbors`), the loss, the gradients, and a (2,) status [loss, neighbour overflow];
 2. the update: gradient clipping and AdamW.
-The host reads the status (the step's one sync) before the update, so a non-finite loss or a neighbour overflow
-never reaches the weights: an overflow grows that layout's capacities (a new static shape: recompiled and
-recaptured) and the batch is run again. With `compile`, each frame step is `torch.compile`d (Inductor fuses the
-model's many small operations); with `cuda_graph` (CUDA only) both parts are captured once per layout and
-replayed, so a step costs two graph launches. Off both, the same code runs eagerly: the reference that the
-tests compare with the original pair-list path.
+The host reads the status (the step's one sync; under DDP summed over the ranks first, so all take the same branch)
+before the update, so a non-finite loss or a neighbour overflow on any rank never reaches the weights: an overflow
+grows that layout's capacities (a new static shape: recompiled and recaptured) and the batch is run again. With
+`compile`, each frame step is `torch.compile`d (Inductor fuses the model's many small operations); with `cuda_graph`
+(CUDA only) both parts are captured once per layout and replayed, so a step costs two graph launches; under
+DistributedDataParallel its bucketed gradient all-reduce, overlapped with the backward, is captured with it (NCCL
+collectives can be; the DDP wrapper is built on a side stream and runs 11 eager steps first, as torch requires). Off
+both, the same code runs eagerly: the reference that the tests compare with the original pair-list path.
 """
 
 from __future__ import annotations
@@ -26,10 +28,15 @@ from wc.model.fixed_neighbors import FixedNeighbors
 from wc.model.layout import SceneLayout
 from wc.model.rollout import compiled, frame_step
 from wc.model.worldcontact import WorldContact
+from wc.train import distributed
 from wc.train.config import TrainConfig
 from wc.train.evaluation import segment_loss
 from wc.train.noise import noisy_state
 from wc.train.resident import LayoutFrames
+
+
+WARMUP = 2  # eager steps before a capture (compilation, lazily made state)
+WARMUP_DDP = 11  # under DistributedDataParallel: torch's rule for capturing its backward (its buckets settle first)
 
 
 class NeighborOverflow(RuntimeError):
@@ -140,7 +147,7 @@ class LayoutStep:
         side = torch.cuda.Stream(self.device)
         side.wait_stream(torch.cuda.current_stream(self.device))
         with torch.cuda.stream(side):
-            for _ in range(2):
+            for _ in range(WARMUP_DDP if distributed.world_size() > 1 else WARMUP):
                 self.optimizer.zero_grad(set_to_none=True)
                 self._forward_backward()
                 self._update()
@@ -202,7 +209,9 @@ class StaticTrainer:
                 self.steps[key] = LayoutStep(self.model, self.runner, self.optimizer, layout, frames, neighbors,
                                              projection, self.settings)
             layout_step = self.steps[key]
-            loss, overflow = layout_step.forward_backward(starts).tolist()  # the step's one host sync
+            status = distributed.summed(layout_step.forward_backward(starts).clone())  # every rank's [loss, overflow]
+            loss, overflow = status.tolist()  # the step's one host sync
+            loss /= distributed.world_size()
             if not overflow:
                 break
             self._grow(layout_step, step_number)
