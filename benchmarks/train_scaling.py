@@ -32,7 +32,7 @@ import torch
 
 from wc.config import load_section, read_params
 from wc.reports import environment_info, write_json_atomic
-from wc.train.config import TrainConfig
+from wc.train.config import Schedule, TrainConfig
 
 MULTICAST_OFF = {"NCCL_NVLS_ENABLE": "0", "TORCH_SYMM_MEM_DISABLE_MULTICAST": "1", "NVSHMEM_DISABLE_NVLS": "1"}
 
@@ -43,15 +43,25 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def run_k(k: int, steps: int, args: argparse.Namespace, work: Path, device: str) -> dict[str, Any]:
+LR_SCALES = {"none": lambda k: 1.0, "linear": float, "sqrt": lambda k: k ** 0.5}
+
+
+def lr_overrides(base: Schedule, factor: float) -> list[str]:
+    """--set arguments scaling the base stage's learning rates by `factor` (K processes take K x the batch)."""
+    return [a for key in ("peak_lr", "start_lr", "final_lr")
+            for a in ("--set", f"train.base.{key}={getattr(base, key) * factor:.6e}")]
+
+
+def run_k(k: int, steps: int, args: argparse.Namespace, work: Path, device: str, base: Schedule) -> dict[str, Any]:
     """One torchrun of K processes; its train report plus the wall time."""
     report = work / f"k{k}.json"
     every = max(1, steps // args.evals)
+    factor = LR_SCALES[args.lr_scale](k)
     overrides = ["--set", f"train.device={device}", "--set", "train.static=true", "--set", f"train.batch_size={args.batch}",
                  "--set", f"train.base.steps={steps}", "--set", f"train.base.warmup_steps={max(1, steps // 10)}",
                  "--set", "train.projection.steps=0", "--set", "train.projection.warmup_steps=0",
                  "--set", f"train.eval_every_steps={every}", "--set", f"train.checkpoint_every_steps={steps}",
-                 *[a for s in args.overrides for a in ("--set", s)]]
+                 *[a for s in args.overrides for a in ("--set", s)], *lr_overrides(base, factor)]
     cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc-per-node", str(k), "--master-port", str(free_port()),
            "-m", "stages.train", "--params", args.params, "--store", args.store, "--out", str(work / f"model_k{k}"),
            "--report", str(report), "--curves", str(work / f"curves_k{k}.csv"), *overrides]
@@ -63,7 +73,7 @@ def run_k(k: int, steps: int, args: argparse.Namespace, work: Path, device: str)
         return {"gpus": k, "error": done.stderr[-3000:]}
     r = json.loads(report.read_text())
     steps_per_s = 1.0 / r["s_per_step_median"]
-    return {"gpus": k, "processes": r["processes"], "steps": steps, "batch_per_process": args.batch,
+    return {"gpus": k, "processes": r["processes"], "steps": steps, "batch_per_process": args.batch, "lr_factor": factor,
             "steps_per_s": steps_per_s, "samples_per_s": k * args.batch * steps_per_s, "wall_s": wall,
             "val_loss_after_samples": r["history"][-1]["val_loss"], "samples": k * args.batch * steps,
             "val_curve": [{"samples": k * args.batch * h["step"], "val_loss": h["val_loss"]} for h in r["history"]]}
@@ -73,7 +83,8 @@ def markdown(report: dict[str, Any]) -> str:
     lines = [f"# World-model training scaling ({report['tag']})", "",
              f"{report['environment'].get('gpu', report['device'])}, torch {report['environment']['torch']}; "
              f"{report['samples']} samples per K, batch {report['batch']} per process; "
-             f"{'CUDA-graphed' if report.get('cuda_graph') else 'eager'} static step.", "",
+             f"{'CUDA-graphed' if report.get('cuda_graph') else 'eager'} static step; learning rate scaled "
+             f"{report.get('lr_scale', 'none')} with K.", "",
              "| gpus | steps/s | samples/s | efficiency | val loss after the samples |", "|---|---|---|---|---|"]
     for r in report["rows"]:
         if "error" in r:
@@ -129,6 +140,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--samples", type=int, default=19200)
     parser.add_argument("--evals", type=int, default=4, help="validations per run, at the same sample counts per K")
     parser.add_argument("--batch", type=int, default=8)
+    parser.add_argument("--lr-scale", choices=sorted(LR_SCALES), default="linear",
+                        help="the base learning rates at K processes (K x the batch): x K, x sqrt(K) or unchanged")
     parser.add_argument("--tag", default="cpu")
     parser.add_argument("--out-dir", default="reports/gpu")
     args = parser.parse_args(argv)
@@ -142,12 +155,12 @@ def main(argv: list[str] | None = None) -> None:
     work = Path(tempfile.mkdtemp(prefix="train_scaling_"))
     report: dict[str, Any] = {"tag": args.tag, "device": device, "samples": args.samples, "batch": args.batch,
                               "environment": environment_info(device), "multicast_off": MULTICAST_OFF, "rows": [],
-                              "cuda_graph": bool(gpus) and train_cfg.cuda_graph}
+                              "cuda_graph": bool(gpus) and train_cfg.cuda_graph, "lr_scale": args.lr_scale}
     if gpus:
         report["environment"]["gpu"] = f"{gpus} x {torch.cuda.get_device_name(0)}"
     out = Path(args.out_dir) / f"train_scaling_{args.tag}.json"
     for k in ks:
-        row = run_k(k, max(1, args.samples // (k * args.batch)), args, work, device)
+        row = run_k(k, max(1, args.samples // (k * args.batch)), args, work, device, train_cfg.base)
         base = next((r for r in report["rows"] if r.get("gpus") == 1 and "samples_per_s" in r), row)
         if "samples_per_s" in row and "samples_per_s" in base:
             row["efficiency"] = row["samples_per_s"] / (k * base["samples_per_s"])

@@ -148,7 +148,7 @@ def test_scaling_benchmark_reports_each_process_count(store_path, tmp_path):
     report = json.loads((tmp_path / "train_scaling_cpu_check.json").read_text())
     one, two = report["rows"]
     assert (one["gpus"], two["gpus"]) == (1, 2) and "error" not in two, two.get("error")
-    assert one["efficiency"] == pytest.approx(1.0)
+    assert one["efficiency"] == pytest.approx(1.0) and (one["lr_factor"], two["lr_factor"]) == (1.0, 2.0)
     assert two["efficiency"] == pytest.approx(two["samples_per_s"] / (2 * one["samples_per_s"]))
     assert [p["samples"] for p in one["val_curve"]] == [p["samples"] for p in two["val_curve"]] == [4, 8]
     assert (tmp_path / "train_scaling_cpu_check.png").stat().st_size > 0
