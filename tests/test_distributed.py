@@ -25,7 +25,7 @@ SECTIONS = {"agent": AgentConfig, "expand": ExpandConfig, "render": RenderConfig
 @pytest.mark.parametrize("section", sorted(SECTIONS))
 @pytest.mark.parametrize("value", ["dask", "Ray", ""])
 def test_a_bad_executor_is_named(section, value):
-    with pytest.raises(ParamsError, match=rf"{section}: executor must be local or ray, got '{value}'"):
+    with pytest.raises(ParamsError, match=rf"{section}: executor must be local, ray or processes, got '{value}'"):
         load_section(load_params(f"{section}.executor='{value}'"), section, SECTIONS[section])
 
 

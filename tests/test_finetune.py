@@ -20,7 +20,7 @@ import torch
 from lerobot.datasets import LeRobotDataset
 
 from tests.stage_run import assert_one_line_error, run_stage
-from wc.policy.finetune_stage import run, stage_params
+from wc.policy.finetune_stage import arm_gpus, run, stage_params
 from wc.config import ParamsError, load_section
 from wc.policy.comparison import FLAG
 from wc.policy.finetune import dataset_metadata, finetune, load_policy, policy_config
@@ -152,6 +152,15 @@ def test_side_by_side_trains_each_dataset_in_its_own_process_to_the_same_policy(
     alone = finetune(data_root / "source", tmp_path / "alone", _cfg(ACT))  # the same training in this process
     assert src["final_loss"] == pytest.approx(alone["final_loss"], rel=1e-4)
     assert os.getpid() not in {src["pid"], exp["pid"]} and src["pid"] != exp["pid"]
+    assert src["gpu"] is None and exp["gpu"] is None  # on the CPU: no GPU of its own
+
+
+def test_side_by_side_policies_take_a_gpu_each_where_there_are_several() -> None:
+    assert arm_gpus(3, "cuda", ["0", "1"]) == ["0", "1", "0"]
+    assert arm_gpus(2, "cuda", ["3", "5", "6", "7"]) == ["3", "5"]
+    assert arm_gpus(2, "cuda", ["0"]) == [None, None]  # one GPU: shared, as configured
+    assert arm_gpus(2, "cpu", ["0", "1"]) == [None, None]
+    assert arm_gpus(2, "cuda:1", ["0", "1"]) == [None, None]  # an explicit device is kept
 
 
 def test_clear_errors(data_root: Path, tmp_path: Path) -> None:

@@ -41,7 +41,8 @@ class AgentConfig:
     max_attempts_per_task: int  # give up on a task after this many episodes
     seed: int  # stage seed; episode seeds derive from it
     workers: int = 1  # local executor: tasks run at once, one process each; 1: in the calling process (same episodes)
-    executor: str = "local"  # local: as `workers` says; ray: every task's batches as Ray tasks (wc.agent.ray_tasks)
+    executor: str = "local"  # local: as `workers` says; ray / processes: every task's batches as Ray tasks / in
+    # one process per GPU (wc.distributed)
     batches_in_flight: int = 1  # batches of a task proposed before the earlier ones' verdicts are filed (1: each
     # proposal sees every earlier verdict); the episodes depend on it, not on the executor
 

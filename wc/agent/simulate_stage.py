@@ -22,7 +22,7 @@ from wc.agent.parallel import TaskResult, init_worker, run_task, task_attempts, 
 from wc.agent.runner import AgentConfig, simulator_store
 from wc.config import load_section, params_hash, without_keys
 from wc.data.store import TrajectoryWriter
-from wc.distributed import LocalExecutor, RayExecutor, UnitsFailed, drive, every_unit, open_executor, uses_cuda
+from wc.distributed import Executor, UnitsFailed, drive, every_unit, open_executor, uses_cuda
 from wc.paths import SIMULATE
 from wc.reports import environment_info, write_json_atomic
 from wc.scene.config import SceneConfig
@@ -49,13 +49,13 @@ def output_params(params: dict[str, Any]) -> dict[str, Any]:
 
 def task_results(params: dict[str, Any], keys: dict[str, str], memory: FailureMemory,
                  workers: int, deadline: float | None = None,
-                 executor: LocalExecutor | RayExecutor | None = None) -> Iterator[TaskResult]:
+                 executor: Executor | None = None) -> Iterator[TaskResult]:
     """Each task's result, in task order (`keys`: task name -> task key). A task starts from the outcomes
-    `memory` holds under its key when it starts. A Ray `executor`: every task's batches as Ray tasks, the tasks'
-    planners here (keys must differ); else workers == 1: one after another in this process; else in that many
-    spawned worker processes, at most `workers` tasks in flight."""
+    `memory` holds under its key when it starts. A ray or processes `executor`: every task's batches as its units,
+    the tasks' planners here (keys must differ); else workers == 1: one after another in this process; else in that
+    many spawned worker processes, at most `workers` tasks in flight."""
     names = list(keys)
-    if executor is not None and executor.name == "ray":
+    if executor is not None and executor.name != "local":
         streams = [task_attempts(params, i, keys[name], memory.outcomes(keys[name]), deadline)
                    for i, name in enumerate(names)]
         for i in drive(executor, streams, load_section(params, "agent", AgentConfig).batches_in_flight):
@@ -120,7 +120,7 @@ def _file_task(result: TaskResult, key: str, writer: TrajectoryWriter, memory: F
 def simulate(params: dict[str, Any], out: str | Path = SIMULATE["out"], report: str | Path = SIMULATE["report"],
              memory: str | Path | None = SIMULATE["memory"], max_minutes: float = 0.0) -> dict[str, Any]:
     """Run every configured task until it has its accepted episodes (or runs out of attempts), in
-    `agent.workers` processes or on Ray (`agent.executor`); write the raw store (accepted and rejected episodes, in
+    `agent.workers` processes, on Ray or in device processes (`agent.executor`); write the raw store (accepted and rejected episodes, in
     task order), the report, lift curves beside the report (simulate_lift.csv / .png), and append the outcomes to
     the agent's failure memory (None: none), saved after each task. max_minutes > 0: no batch of episodes starts
     after that wall time (a chunked GPU job; the report's `stopped_early` says so). Ray units that kept failing:
@@ -132,7 +132,7 @@ def simulate(params: dict[str, Any], out: str | Path = SIMULATE["out"], report: 
     tasks = [get_task(name, params) for name in agent_cfg.tasks]
     phash = params_hash(output_params(params), SECTIONS)
     keys = {t.name: task_key(params, t.name) for t in tasks}
-    if (agent_cfg.workers > 1 or agent_cfg.executor == "ray") and len(set(keys.values())) < len(keys):
+    if (agent_cfg.workers > 1 or agent_cfg.executor != "local") and len(set(keys.values())) < len(keys):
         raise ValueError("tasks with identical params share their outcomes, so they cannot run in separate "
                          "workers; set agent.workers=1 and agent.executor=local")
     outcomes = FailureMemory.load(memory) if memory is not None else FailureMemory()
@@ -176,7 +176,7 @@ def simulate(params: dict[str, Any], out: str | Path = SIMULATE["out"], report: 
         "bag_vertices": len(union.objects["bag"].vertices) if "bag" in union.objects else 0,
         "memory": {"path": str(memory) if memory is not None else None, "outcomes": len(outcomes)},
         "environment": environment or environment_info(NewtonSimulator.device_name(sim_cfg)
-                                                       if agent_cfg.executor == "local" else "cpu"),  # ray: a worker's
+                                                       if agent_cfg.executor == "local" else "cpu"),  # else a worker's
     }
     report = Path(report)
     write_lift_curves(curves, sim_cfg.frame_dt_s, report.with_name("simulate_lift.csv"),

@@ -1,5 +1,5 @@
 """Trajectory store (Zarr v3): the public API (schema in wc/data/schema.py, TrajectoryWriter in wc/data/writer.py,
-TrajectoryStore in wc/data/reader.py) and the subset copy.
+TrajectoryStore in wc/data/reader.py), the subset copy and the concatenation of stores of one scene.
 
 Layout (see DESIGN.md, "Trajectory store"); all float arrays float32, faces int32:
 
@@ -45,7 +45,15 @@ from wc.data.writer import TrajectoryWriter
 
 __all__ = ["ACTION_DIM", "EPISODE_ARRAYS", "EPISODE_ATTRS", "KINDS", "LAYOUT_ATTRS", "POSE_DIM", "ROOT_ATTRS", "SCHEMA",
            "SCHEMA_PREFIX", "SOURCES", "SPLITS", "ObjectMesh", "PrescribedSamples", "TrajectoryStore",
-           "TrajectoryWriter", "copy_store", "format_episode_id"]
+           "TrajectoryWriter", "concatenate_stores", "copy_scene", "copy_store", "format_episode_id"]
+
+
+def copy_scene(src: TrajectoryStore, writer: TrajectoryWriter) -> None:
+    """The objects and prescribed sample sets of `src` into `writer`."""
+    for o in src.objects.values():
+        writer.add_object(o.name, o.rest_positions, o.faces, o.rest_uv, o.vertex_area, o.kind, o.tag, o.material)
+    for p in src.prescribed.values():
+        writer.add_prescribed(p.name, p.local_points, p.local_normals, p.tag, p.link)
 
 
 def copy_store(
@@ -84,11 +92,32 @@ def copy_store(
         object_order=src.object_names, link_names=src.link_names, env_names=src.env_names,
         chunk_frames=chunk_frames,
     ) as w:
-        for o in src.objects.values():
-            w.add_object(o.name, o.rest_positions, o.faces, o.rest_uv, o.vertex_area, o.kind, o.tag, o.material)
-        for p in src.prescribed.values():
-            w.add_prescribed(p.name, p.local_points, p.local_normals, p.tag, p.link)
+        copy_scene(src, w)
         for eid in ids:
             attrs = {**src.episode_attrs(eid), **attr_updates.get(eid, {})}
             w.add_episode(**src.read_episode(eid), episode_id=eid, **attrs)
+    return TrajectoryStore(dst_path)
+
+
+def concatenate_stores(parts: Sequence[str | os.PathLike[str]], dst_path: str | os.PathLike[str]) -> TrajectoryStore:
+    """Write at `dst_path` (atomically) the episodes of the stores `parts`, in order and numbered afresh, with the
+    scene and root attrs of the first; every part must have the same root attrs (one scene, one params hash)."""
+    if not parts:
+        raise ValueError("concatenate_stores needs at least one store")
+    stores = [TrajectoryStore(p) for p in parts]
+    first = stores[0]
+    for s in stores[1:]:
+        if s.attrs != first.attrs:
+            raise ValueError(f"{s.path}: its root attrs differ from {first.path}'s: stores of one scene and params "
+                             "only can be concatenated")
+    a = first.attrs
+    with_episodes = [s for s in stores if s.episode_ids]
+    chunk_frames = with_episodes[0].chunk_frames(with_episodes[0].episode_ids[0]) if with_episodes else 16
+    with TrajectoryWriter(dst_path, dt=a["dt"], substeps=a["substeps"], units=a["units"], created_by=a["created_by"],
+                          params_hash=a["params_hash"], object_order=first.object_names, link_names=first.link_names,
+                          env_names=first.env_names, chunk_frames=chunk_frames) as w:
+        copy_scene(first, w)
+        for s in stores:
+            for eid in s.episode_ids:
+                w.add_episode(**s.read_episode(eid), **s.episode_attrs(eid))
     return TrajectoryStore(dst_path)

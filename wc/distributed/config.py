@@ -1,18 +1,20 @@
-"""The executor switch of the three data stages (`agent.executor`, `expand.executor`, `render.executor`) and the
-`ray` params section that the `ray` executor reads (wc.distributed.executors)."""
+"""The executor switch of the three data stages (`agent.executor`, `expand.executor`, `render.executor`), the
+`ray` params section that the `ray` executor reads (wc.distributed.executors) and the `processes` section that the
+`processes` executor reads (wc.distributed.processes; also where `expand.shards` run)."""
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
 
-EXECUTORS = ("local", "ray")
+EXECUTORS = ("local", "ray", "processes")
 
 
 def check_executor(name: object, key: str = "executor") -> None:
-    """The one rule for a stage's `executor` value: local or ray; else ValueError naming `key` and the value."""
+    """The one rule for a stage's `executor` value: local, ray or processes; else ValueError naming `key` and the
+    value."""
     if name not in EXECUTORS:
-        raise ValueError(f"{key} must be local or ray, got {name!r}")
+        raise ValueError(f"{key} must be local, ray or processes, got {name!r}")
 
 
 def uses_cuda(*devices: str) -> bool:
@@ -42,3 +44,15 @@ class RayConfig:
         gpus = self.gpus_per_unit
         if not (math.isfinite(gpus) and gpus > 0 and (gpus <= 1 or gpus.is_integer())):
             raise ValueError(f"gpus_per_unit must be a fraction in (0, 1] or a whole number of GPUs, got {gpus}")
+
+
+@dataclass(frozen=True)
+class ProcessesConfig:
+    """How many device processes the `processes` executor starts (wc.distributed.processes)."""
+
+    devices: int = 0  # processes, process k pinned to visible GPU k (mod the GPU count); 0: one per visible GPU, or
+    # DEFAULT_CPU_PROCESSES where there is none
+
+    def validate(self) -> None:
+        if isinstance(self.devices, bool) or self.devices < 0:
+            raise ValueError(f"devices must be >= 0 (0: one process per visible GPU), got {self.devices}")

@@ -5,7 +5,8 @@ the same spec, applied to a payload; its result depends on the spec and the payl
 wherever and whenever the unit runs. `LocalExecutor` runs each unit in this process when its result is wanted, in
 the order the units were submitted (what the stages did before executors); `RayExecutor` runs them as Ray tasks
 that ask for the CPUs or GPUs they need, retried (Ray's max_retries) when their worker raised or died, and logged
-and recorded as failed when they kept failing. `open_executor` picks one by a stage's `executor` value.
+and recorded as failed when they kept failing; `ProcessesExecutor` (wc.distributed.processes) runs them in one
+spawned process per GPU of this host. `open_executor` picks one by a stage's `executor` value.
 """
 
 from __future__ import annotations
@@ -16,13 +17,16 @@ from collections import OrderedDict, deque
 from collections.abc import Callable, Collection, Hashable, Iterator
 from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 import torch
 
 from wc.config import load_section
-from wc.distributed.config import RayConfig, check_executor
+from wc.distributed.config import ProcessesConfig, RayConfig, check_executor
 from wc.reaper import reaping_descendants
+
+if TYPE_CHECKING:
+    from wc.distributed.processes import ProcessesExecutor
 
 log = logging.getLogger(__name__)
 KEPT_WORKERS = 2  # workers one Ray worker process keeps (a simulate worker holds a task's Newton world)
@@ -64,6 +68,26 @@ class UnitsFailed(RuntimeError):
         self.failures = failures
 
 
+class Executor(Protocol):
+    """What runs a stage's units (LocalExecutor, RayExecutor, ProcessesExecutor): `submit` returns a ticket, `wait`
+    {ticket: result} of units that finished (FAILED for one that kept failing), `stopping` once one did."""
+
+    name: str
+    units: int
+    failures: list[UnitFailure]
+
+    @property
+    def stopping(self) -> bool: ...
+
+    def submit(self, unit: Unit) -> Hashable: ...
+
+    def wait(self) -> dict[Hashable, Any]: ...
+
+    def cancel(self, tickets: Collection[Hashable]) -> None: ...
+
+    def report(self) -> dict[str, Any]: ...
+
+
 class LocalExecutor:
     """Units run in this process, one at a time in submission order, each when `wait` is called; an exception a
     unit raises propagates (no retry)."""
@@ -97,12 +121,13 @@ class LocalExecutor:
         return {"name": self.name}
 
 
-_kept: OrderedDict[str, Callable[[Any], Any]] = OrderedDict()  # this Ray worker process's workers, latest last
+_kept: OrderedDict[str, Callable[[Any], Any]] = OrderedDict()  # this worker process's workers, latest last
 
 
 def run_unit(spec: WorkerSpec, payload: Any, torch_threads: int) -> Any:
-    """One unit in a Ray worker process, with the driver's torch thread count (as the local pool's workers): the
-    worker of `spec` (kept from an earlier unit, else built; dropped if it raises) applied to `payload`."""
+    """One unit in a Ray worker or device process, with the driver's torch thread count (as the local pool's
+    workers): the worker of `spec` (kept from an earlier unit, else built; dropped if it raises) applied to
+    `payload`."""
     torch.set_num_threads(torch_threads)
     worker = _kept.pop(spec.key, None)
     if worker is None:
@@ -170,14 +195,22 @@ class RayExecutor:
 
 
 @contextmanager
-def open_executor(name: str, params: dict[str, Any], gpu: bool) -> Iterator[LocalExecutor | RayExecutor]:
+def open_executor(name: str, params: dict[str, Any],
+                  gpu: bool) -> Iterator[LocalExecutor | RayExecutor | ProcessesExecutor]:
     """The executor a stage's `executor` value names. ray: the params' `ray` section; connected to ray.address, else
     $RAY_ADDRESS, else a new Ray instance on this machine (shut down on exit, and its processes killed if this
     process is: wc.reaper); a Ray this process already initialised (a test's, a notebook's) is used as it is.
-    `gpu`: the units run on a CUDA device."""
+    processes: the params' `processes` section, the processes ended on exit. `gpu`: the units run on a CUDA device
+    (ray asks for one; a device process is pinned to its GPU whenever the host has one)."""
     check_executor(name)
     if name == "local":
         yield LocalExecutor()
+        return
+    if name == "processes":
+        from wc.distributed.processes import ProcessesExecutor, placement  # it imports this module
+
+        with ProcessesExecutor(placement(load_section(params, "processes", ProcessesConfig))) as executor:
+            yield executor
         return
     cfg = load_section(params, "ray", RayConfig)
     import ray
@@ -195,7 +228,7 @@ def open_executor(name: str, params: dict[str, Any], gpu: bool) -> Iterator[Loca
 
 
 @contextmanager
-def every_unit(executor: LocalExecutor | RayExecutor, stage: str) -> Iterator[None]:
+def every_unit(executor: Executor, stage: str) -> Iterator[None]:
     """`with writer, every_unit(executor, stage):` raises UnitsFailed at the end of the block when units kept
     failing, so that the writer, exited after it, discards its store."""
     yield

@@ -12,7 +12,7 @@ from collections import deque
 from collections.abc import Hashable, Iterator, Sequence
 from typing import Any, Protocol
 
-from wc.distributed.executors import FAILED, LocalExecutor, RayExecutor, Unit
+from wc.distributed.executors import FAILED, Executor, Unit
 
 
 class Stream(Protocol):
@@ -25,7 +25,7 @@ class Stream(Protocol):
         ...
 
 
-def drive(executor: LocalExecutor | RayExecutor, streams: Sequence[Stream], in_flight: int = 1) -> Iterator[int]:
+def drive(executor: Executor, streams: Sequence[Stream], in_flight: int = 1) -> Iterator[int]:
     """Run `streams` on `executor`, each with at most `in_flight` units proposed and not yet filed; yields each
     stream's index once it is finished (nothing in flight, nothing proposed), in stream order.
 

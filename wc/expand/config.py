@@ -72,13 +72,17 @@ class ExpandConfig:
     device: str = "cpu"  # cpu | cuda | cuda:k | auto
     seed: int = 0
     max_minutes: float = 0.0  # no batch started after this much wall time (0: no limit); the report says so
-    executor: str = "local"  # local: in this process; ray: each batch's rollouts and checks as a Ray task
+    executor: str = "local"  # local: in this process; ray / processes: each batch's rollouts and checks as a Ray task /
+    # in one process per GPU (engine batches)
     batches_in_flight: int = 1  # batches planned before the earlier ones' verdicts are filed (1: each plan sees every
     # earlier verdict); the episodes depend on it, not on the executor
     # slots: batch_size slots refilled as episodes end or fail, fixed-pass projection, checks on the device
     # (wc.expand.slot_expansion; local executor); batches: batch by batch, the reference (wc.expand.worker)
     engine: str = "slots"
     slots: SlotConfig = SlotConfig()
+    # independent expansions of fixed shares of the episodes and attempts, each with its own plan seeds, run in the
+    # `processes` executor's device processes and concatenated in shard order (wc.expand.shards)
+    shards: int = 1
 
     def validate(self) -> None:
         if not self.task:
@@ -118,12 +122,25 @@ class ExpandConfig:
         check_executor(self.executor)
         if self.batches_in_flight < 1:
             raise ValueError(f"batches_in_flight must be >= 1, got {self.batches_in_flight}")
+        if self.shards < 1:
+            raise ValueError(f"shards must be >= 1, got {self.shards}")
+        if self.shards > 1:
+            if self.executor != "local":
+                raise ValueError(f"shards > 1 run on the processes section's devices: executor must be local, got "
+                                 f"{self.executor!r}")
+            if ":" in self.device:
+                raise ValueError(f"device must be cpu, cuda or auto with shards > 1 (a shard's process sees only its "
+                                 f"own GPU, as cuda), got {self.device!r}")
+            if self.max_attempts < self.shards:
+                raise ValueError(f"max_attempts must be >= shards (each shard tries a share of them), got "
+                                 f"{self.max_attempts} < {self.shards}")
         if self.engine not in ("slots", "batches"):
             raise ValueError(f"engine must be slots or batches, got {self.engine!r}")
         if self.engine == "slots":
             if self.executor != "local":
                 raise ValueError(f"engine slots runs in the stage's process: executor must be local, got "
-                                 f"{self.executor!r} (engine batches runs on ray)")
+                                 f"{self.executor!r} (engine batches runs on ray or processes; shards place slot "
+                                 "expansions on devices)")
             if self.projection != "joint" or self.pad_carry:
                 raise ValueError("engine slots projects jointly without pad carry (projection joint, pad_carry false); "
                                  "use engine batches for the others")

@@ -5,16 +5,10 @@ from __future__ import annotations
 
 from typing import Any
 
-from wc.data.store import TrajectoryStore, TrajectoryWriter
+from wc.data.store import copy_scene
 from wc.expand.plan import PlannedEpisode, SourceEpisode
 
-
-def copy_scene(src: TrajectoryStore, writer: TrajectoryWriter) -> None:
-    """The objects and prescribed sample sets of `src` into `writer`."""
-    for o in src.objects.values():
-        writer.add_object(o.name, o.rest_positions, o.faces, o.rest_uv, o.vertex_area, o.kind, o.tag, o.material)
-    for p in src.prescribed.values():
-        writer.add_prescribed(p.name, p.local_points, p.local_normals, p.tag, p.link)
+__all__ = ["copy_scene", "episode_attrs"]
 
 
 def episode_attrs(planned: PlannedEpisode, source: SourceEpisode, failure: str | None = None,

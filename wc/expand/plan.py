@@ -20,6 +20,7 @@ from wc.dynamics import ObjectState
 from wc.expand.config import ExpandConfig
 from wc.expand.transform import check_on_table, planar_transform
 from wc.scene.scene import Scene
+from wc.seeds import SeedStream, episode_seed
 from wc.tasks.base import EpisodeSpec, InfeasibleEpisode, Task
 from wc.validate.config import ValidateConfig
 from wc.validate.predicates import Episode, cloth_rows, penetration, table_and_robot_distance
@@ -101,6 +102,12 @@ def presettle_state(task: Task, scene: Scene, attrs: dict[str, Any], x0: np.ndar
     if initial.x.shape != x0.shape or not np.allclose(start, action0, atol=START_TOL):
         return None
     return initial.x
+
+
+def plan_seed(stage_seed: int, shard: int, attempt: int) -> int:
+    """The seed of generated episode `attempt` of shard `shard` (expand.shards), in the expand seed stream. Expand has
+    one task: the task coordinate of the seed is the shard's, so shard 0 draws what an unsharded run draws."""
+    return episode_seed(stage_seed, shard, attempt, SeedStream.EXPAND)
 
 
 def pick_parent(sources: list[SourceEpisode], cell: int, attempt: int) -> SourceEpisode:

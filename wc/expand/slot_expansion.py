@@ -27,12 +27,11 @@ from wc.agent.planner import CoveragePlanner
 from wc.expand.config import ExpandConfig
 from wc.expand.frame_checks import NEVER
 from wc.expand.phase_timer import PhaseTimer
-from wc.expand.plan import PlannedEpisode, SourceEpisode, pick_parent
+from wc.expand.plan import PlannedEpisode, SourceEpisode, pick_parent, plan_seed
 from wc.expand.plan_pool import PlanPool, PlanResult
 from wc.expand.slot_rollout import SlotPlan, SlotRollout
 from wc.expand.slot_verdicts import slot_verdict
 from wc.scene.scene import Scene
-from wc.seeds import SeedStream, episode_seed
 from wc.tasks.base import UNREACHABLE, EpisodeSpec, Task
 from wc.validate.config import ValidateConfig
 from wc.validate.failure_detail import failure_detail
@@ -78,15 +77,16 @@ MIN_EXPECTED_ACCEPTANCE = 0.25  # proposals ahead of the target at most 1 / this
 class SlotExpansion:
     """One task's expansion on `cfg.batch_size` slots (module docstring). make_rollout(frames): the SlotRollout whose
     slots hold episodes of up to `frames` frames; write(accepted, running, x, v, failure): stores a filed episode (on
-    the writer thread); wanted: accepted generated episodes to reach; started: time.perf_counter() of the stage."""
+    the writer thread); wanted: accepted generated episodes to reach; started: time.perf_counter() of the stage;
+    shard: whose plan seeds (wc.expand.plan.plan_seed)."""
 
     def __init__(self, task: Task, scene: Scene, sources: list[SourceEpisode], cfg: ExpandConfig,
                  validate_cfg: ValidateConfig, dt: float, wanted: int, make_rollout: Callable[[int], SlotRollout],
                  pool: PlanPool, started: float, write: Callable[..., None],
-                 on_filed: Callable[[SlotExpansion], None] | None = None) -> None:
+                 on_filed: Callable[[SlotExpansion], None] | None = None, shard: int = 0) -> None:
         self.task, self.scene, self.sources, self.cfg, self.validate_cfg = task, scene, sources, cfg, validate_cfg
         self.dt, self.wanted, self.make_rollout, self.pool, self.started = dt, wanted, make_rollout, pool, started
-        self.write, self.on_filed = write, on_filed
+        self.write, self.on_filed, self.shard = write, on_filed, shard
         self.rollout: SlotRollout | None = None
         self.planner = CoveragePlanner()
         self.ahead = cfg.slots.plans_ahead or 2 * cfg.batch_size
@@ -120,7 +120,7 @@ class SlotExpansion:
         with self.timer.phase("planning"):
             while self._may_propose():
                 i = self.proposed
-                spec = self.planner.propose(self.task, episode_seed(self.cfg.seed, 0, i, SeedStream.EXPAND))
+                spec = self.planner.propose(self.task, plan_seed(self.cfg.seed, self.shard, i))
                 source = pick_parent(self.sources, spec.cell, i)
                 self.queue.append(_Proposed(i, spec, source, self.pool.submit(spec, self.sources.index(source))))
                 self.proposed += 1

@@ -81,9 +81,9 @@ class SlotModel:
 
 def run_slots(model: SlotModel, pool: PlanPool, task: Task, scene: Scene, sources: list[SourceEpisode], wanted: int,
               writer: TrajectoryWriter | None, rejected_writer: TrajectoryWriter | None, started: float,
-              model_sha256: str | None = None) -> SlotExpansion:
+              model_sha256: str | None = None, shard: int = 0) -> SlotExpansion:
     """Expand on the slots, planning in `pool`, until the target is met or the attempts run out; each filed episode
-    goes to `writer` (accepted) or `rejected_writer` (None: not kept). Returns the finished expansion (its counts and
+    goes to `writer` (accepted) or `rejected_writer` (None: not kept); `shard`: whose plan seeds. Returns the finished expansion (its counts and
     timing)."""
     cfg, links = model.cfg, len(scene.link_names)
     bar = tqdm(total=wanted, desc=f"expand {task.name}", unit="trajectory")
@@ -104,7 +104,7 @@ def run_slots(model: SlotModel, pool: PlanPool, task: Task, scene: Scene, source
         bar.set_postfix(generated=expansion.generated, rejected=expansion.generated - expansion.accepted)
 
     expansion = SlotExpansion(task, scene, sources, cfg, model.validate_cfg, model.dt, wanted, model.rollout, pool,
-                              started, write, filed)
+                              started, write, filed, shard)
     try:
         expansion.run()
     finally:

@@ -21,6 +21,8 @@ Two engines (`engine`), the same checks and stores:
   or, with `executor: ray`, as Ray tasks; the planning and the writing stay here, and the verdicts are filed in
   planning order (`ExpandPlans`, wc.distributed.streams), so either executor writes the same episodes.
 Either way the verdicts are filed, and episodes written, in proposal order: the same params give the same stores.
+With `shards` > 1 the expansion is split into that many independent shares run on the devices of this host and
+concatenated in shard order (wc.expand.shards).
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ import secrets
 import time
 from collections import deque
 from contextlib import nullcontext
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -46,13 +49,13 @@ from wc.expand.generated_store import copy_scene, episode_attrs
 from wc.expand.plan_pool import PlanPool
 from wc.expand.slot_expansion import SlotExpansion
 from wc.expand.slot_stage import SlotModel, run_slots
-from wc.expand.plan import PlannedEpisode, SourceEpisode, pick_parent, plan_episode, source_episodes
+from wc.expand.plan import PlannedEpisode, SourceEpisode, pick_parent, plan_episode, plan_seed, source_episodes
+from wc.expand.shards import expand_in_shards, share
 from wc.expand.worker import Counters, ExpandBatch, ExpandWorker, load_expand_worker, merged_counters
 from wc.paths import EXPAND
 from wc.reports import environment_info, write_json_atomic
 from wc.scene.config import SceneConfig
 from wc.scene.scene import Scene
-from wc.seeds import SeedStream, episode_seed
 from wc.tasks.base import UNREACHABLE, InfeasibleEpisode, Task, get_task
 from wc.validate.config import ValidateConfig
 from wc.validate.predicates import PREDICATES
@@ -72,12 +75,13 @@ class ExpandPlans:
     """The planner's side of the expansion, a stream of batches (wc.distributed.streams): each batch is planned from
     every verdict filed before it; its verdicts are filed, and its episodes written, in planning order. Stops
     planning once the accepted episodes plus those in flight reach `wanted`, after `max_attempts`, or after
-    `max_minutes` from `started` (time.perf_counter())."""
+    `max_minutes` from `started` (time.perf_counter()); `shard`: whose plan seeds (wc.expand.plan.plan_seed)."""
 
     def __init__(self, task: Task, scene: Scene, sources: list[SourceEpisode], cfg: ExpandConfig,
                  validate_cfg: ValidateConfig, dt: float, wanted: int, worker: WorkerSpec, started: float,
-                 model_sha256: str | None = None) -> None:
+                 model_sha256: str | None = None, shard: int = 0) -> None:
         self.task, self.scene, self.sources, self.cfg, self.validate_cfg = task, scene, sources, cfg, validate_cfg
+        self.shard = shard
         self.dt, self.wanted, self.worker, self.started = dt, wanted, worker, started
         self.model_sha256 = model_sha256  # recorded in every generated episode's attrs (the teacher check reports it)
         self.planner = CoveragePlanner()  # this run's outcomes only: the simulator's memory is about another dynamics
@@ -106,7 +110,7 @@ class ExpandPlans:
             first = self.attempts
             for i in range(first, first + min(cfg.batch_size, self.wanted - self.accepted - self.in_flight,
                                               cfg.max_attempts - first)):
-                spec = self.planner.propose(self.task, episode_seed(cfg.seed, 0, i, SeedStream.EXPAND))
+                spec = self.planner.propose(self.task, plan_seed(cfg.seed, self.shard, i))
                 source = pick_parent(self.sources, spec.cell, i)
                 try:
                     planned.append((plan_episode(self.task, self.scene, source, spec, cfg, self.dt, self.validate_cfg),
@@ -154,12 +158,27 @@ def expand(params: dict[str, Any], model_dir: str | Path = EXPAND["model"], stor
     to `out` and the rejected ones (accepted false, first_failure their check) to `rejected_out` (None: not
     kept), each atomically and possibly empty, and the report to `report`. Returns the report. The rejected
     store is what lets the teacher check measure recall as well as precision. Ray units that kept failing: the
-    report lists them, neither store is written, UnitsFailed."""
-    cfg = load_section(params, "expand", ExpandConfig)
-    scene_cfg = load_section(params, "scene", SceneConfig)
-    validate_cfg = load_section(params, "validate", ValidateConfig)
+    report lists them, neither store is written, UnitsFailed. `expand.shards` > 1: wc.expand.shards."""
     model_ref, store, out = model_dir, Path(store), Path(out)
     rejected_out = Path(rejected_out) if rejected_out is not None else None
+    if load_section(params, "expand", ExpandConfig).shards == 1:
+        return expand_share(params, model_ref, store, out, report, rejected_out)
+    for name, cls in (("scene", SceneConfig), ("validate", ValidateConfig)):  # bad input fails before any output
+        load_section(params, name, cls)
+    model_dir = _checked_inputs(model_ref, store, out, rejected_out)
+    result = expand_in_shards(params, expand_share, model_dir, store, out, rejected_out, _params_hash(params),
+                              _checkpoint_info(model_ref, model_dir))
+    write_json_atomic(report, result)
+    return result
+
+
+def _params_hash(params: dict[str, Any]) -> str:
+    """What the stores depend on (not where the work ran)."""
+    return params_hash(without_keys(params, "expand", ("executor",)), SECTIONS)
+
+
+def _checked_inputs(model_ref: str | Path, store: Path, out: Path, rejected_out: Path | None) -> Path:
+    """The local model folder of `model_ref`, once the source store exists and the outputs overwrite no store."""
     if not store.exists():
         raise FileNotFoundError(f"source trajectory store {store} not found: run the validate stage first "
                                 "(`dvc repro validate`)")
@@ -171,6 +190,18 @@ def expand(params: dict[str, Any], model_dir: str | Path = EXPAND["model"], stor
                                                                                                    out.resolve())):
         raise ValueError(f"expand would overwrite a store: its outputs {out} and {rejected_out} must differ from "
                          f"each other and from its input {store}")
+    return model_dir
+
+
+def expand_share(params: dict[str, Any], model_ref: str | Path, store: Path, out: Path, report: str | Path,
+                 rejected_out: Path | None, shard: int = 0) -> dict[str, Any]:
+    """`expand` of shard `shard`'s share of the wanted episodes and attempts (all of them when expand.shards is 1),
+    with its plan seeds; the whole expansion in one process (its engine's own planning processes aside)."""
+    cfg = load_section(params, "expand", ExpandConfig)
+    scene_cfg = load_section(params, "scene", SceneConfig)
+    validate_cfg = load_section(params, "validate", ValidateConfig)
+    model_dir = _checked_inputs(model_ref, store, out, rejected_out)
+    cfg = replace(cfg, max_attempts=share(cfg.max_attempts, cfg.shards, shard))
     started = time.perf_counter()
     task = get_task(cfg.task, params)
     src = TrajectoryStore(store)
@@ -179,8 +210,8 @@ def expand(params: dict[str, Any], model_dir: str | Path = EXPAND["model"], stor
     checkpoint = _checkpoint_info(model_ref, model_dir)
     if checkpoint["dt"] is not None and abs(float(checkpoint["dt"]) - dt) > 1e-9:
         raise ValueError(f"{model_dir}: the model was trained at frame dt {checkpoint['dt']} s, {store} has {dt} s")
-    phash = params_hash(without_keys(params, "expand", ("executor",)), SECTIONS)
-    wanted = max(0, cfg.target_trajectories - len(sources))
+    phash = _params_hash(params)
+    wanted = share(max(0, cfg.target_trajectories - len(sources)), cfg.shards, shard)
 
     def writer_to(path: Path | None) -> TrajectoryWriter | nullcontext[None]:
         if path is None:
@@ -198,7 +229,7 @@ def expand(params: dict[str, Any], model_dir: str | Path = EXPAND["model"], stor
                     if w is not None:
                         copy_scene(src, w)
                 slots = run_slots(model, pool, task, scene, sources, wanted, writer, rejected_writer, started,
-                                  checkpoint["sha256"])
+                                  checkpoint["sha256"], shard)
         result = {**_report(slots, cfg, sources, checkpoint, store, out, rejected_out, phash, {"name": "local"},
                             str(model.device), environment_info(str(model.device)), time.perf_counter() - started),
                   "engine": "slots", "slots": cfg.batch_size, "sync_every": cfg.slots.sync_every,
@@ -212,7 +243,8 @@ def expand(params: dict[str, Any], model_dir: str | Path = EXPAND["model"], stor
     else:  # each Ray worker process loads the model once for this run
         worker = WorkerSpec(f"expand:{secrets.token_hex(8)}", load_expand_worker,
                             (params, str(model_dir.resolve()), str(store.resolve())))
-    plans = ExpandPlans(task, scene, sources, cfg, validate_cfg, dt, wanted, worker, started, checkpoint["sha256"])
+    plans = ExpandPlans(task, scene, sources, cfg, validate_cfg, dt, wanted, worker, started, checkpoint["sha256"],
+                        shard)
 
     failed = None
     with open_executor(cfg.executor, params, uses_cuda(cfg.device, validate_cfg.device)) as executor:

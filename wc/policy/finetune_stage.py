@@ -8,11 +8,13 @@ from __future__ import annotations
 
 import os
 import time
+from contextlib import ExitStack
 from pathlib import Path
 from typing import Any
 
 import torch
 
+from wc.distributed.processes import pin_to_gpu, visible_gpus
 from wc.config import ParamsError, load_section, params_hash, read_params
 from wc.paths import FINETUNE
 from wc.policy.comparison import FLAG, WARNING, expanded_equals_source
@@ -47,6 +49,7 @@ def run(params: dict[str, Any], data_root: str | Path = FINETUNE["data_root"],
         "params_hash": digest, "wall_s": time.perf_counter() - start, "environment": environment_info(cfg.device),
         "datasets": {name: {k: r[k] for k in ("dataset", "episodes", "frames", "first_loss", "final_loss",
                                                "s_per_step_median", "train_s", "wall_s", "parameters", "pid")}
+                     | {"gpu": r.get("gpu")}
                      | {"model": str(Path(out_root) / name)} for name, r in results.items()},
         **smoke_label(params, "finetune"),
     }
@@ -57,12 +60,30 @@ def run(params: dict[str, Any], data_root: str | Path = FINETUNE["data_root"],
 def train_policies(roots: dict[str, Path], out_root: Path, cfg: PolicyConfig,
                    meta: dict[str, Any]) -> dict[str, dict[str, Any]]:
     """{dataset name: finetune's summary}, each policy trained on its dataset with `cfg`; with `cfg.side_by_side`
-    all at once, each in a spawned process that ends with this one (the same seed and settings: the same policies)."""
+    all at once, each in a spawned process that ends with this one (the same seed and settings: the same policies),
+    on a GPU of its own where `policy.device` is cuda and the host has several (`arm_gpus`)."""
     if not cfg.side_by_side or len(roots) < 2:
         return {name: _finetune_here(root, out_root / name, cfg, meta) for name, root in roots.items()}
-    with spawn_pool(len(roots), torch.set_num_threads, (cores_each(len(roots)),)) as pool:
-        futures = {name: pool.submit(_finetune_here, root, out_root / name, cfg, meta) for name, root in roots.items()}
-        return {name: future.result() for name, future in futures.items()}
+    gpus = arm_gpus(len(roots), cfg.device, visible_gpus() if cfg.device == "cuda" else [])
+    with ExitStack() as stack:
+        pools = [stack.enter_context(spawn_pool(1, _start_arm, (gpu, cores_each(len(roots))))) for gpu in gpus]
+        futures = {name: (pool.submit(_finetune_here, root, out_root / name, cfg, meta), gpu)
+                   for pool, gpu, (name, root) in zip(pools, gpus, roots.items())}
+        return {name: future.result() | {"gpu": gpu} for name, (future, gpu) in futures.items()}
+
+
+def arm_gpus(arms: int, device: str, gpus: list[str]) -> list[str | None]:
+    """The GPU each side-by-side policy trains on: round robin over `gpus` where `device` is cuda and there are
+    several; None (the device as configured, shared) otherwise."""
+    if device != "cuda" or len(gpus) < 2:
+        return [None] * arms
+    return [gpus[i % len(gpus)] for i in range(arms)]
+
+
+def _start_arm(gpu: str | None, threads: int) -> None:
+    """A side-by-side process's start-up: its GPU (if any) and its share of the cores."""
+    pin_to_gpu(gpu)
+    torch.set_num_threads(threads)
 
 
 def _finetune_here(root: Path, out: Path, cfg: PolicyConfig, meta: dict[str, Any]) -> dict[str, Any]:
