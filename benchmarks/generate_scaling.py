@@ -6,9 +6,10 @@
     -> <out-dir>/generate_scaling_<tag>.json (+ .md), a row per K and stage with gpus, stage, episodes, accepted,
        wall_s, episodes_per_min, speedup
 
-For each K, from the same inputs: the simulate stage (task --task, --episodes accepted episodes wanted, at most
-2 x --episodes attempts, `agent.executor: processes` on K device processes, max(K) x --in-flight batches in flight
-for every K) and the expand stage (--episodes generated episodes wanted from --store's accepted episodes of
+For each K, from the same inputs: the simulate stage (task --task, exactly --episodes episodes simulated: as many
+attempts allowed as accepted episodes wanted, so the work does not hang on the acceptance rate and whole batches of
+sim.worlds are proposed at once; `agent.executor: processes` on K device processes, max(K) x --in-flight batches in
+flight for every K) and the expand stage (--episodes generated episodes wanted from --store's accepted episodes of
 expand.task with --model, expand.shards = max(K), placed on K device processes). Both do the same work for every K
 (the stores depend on batches_in_flight and shards, not on K), so speedup = episodes/min(K) / episodes/min(1) of the
 same stage, measured in this run. Wall times include starting the device processes (warp kernels from the cache).
@@ -37,7 +38,7 @@ from wc.reports import environment_info, write_json_atomic
 def stage_params(args: argparse.Namespace, k: int, ks: list[int]) -> dict[str, Any]:
     """The params of K devices: the same work for every K, placed on K device processes."""
     overrides = [f"agent.tasks=[{args.task}]", f"agent.episodes_per_task={args.episodes}",
-                 f"agent.max_attempts_per_task={2 * args.episodes}", "agent.workers=1", "agent.executor=processes",
+                 f"agent.max_attempts_per_task={args.episodes}", "agent.workers=1", "agent.executor=processes",
                  f"agent.batches_in_flight={max(ks) * args.in_flight}", f"expand.shards={max(ks)}",
                  "expand.executor=local", f"processes.devices={k}", *args.overrides]
     params = read_params(args.params, overrides)
@@ -112,7 +113,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--devices", default=None, help="comma-separated K (default 1, 2, 4, 8 up to the GPUs; 1, 2 "
                                                         "without GPUs)")
     parser.add_argument("--task", default="lift_handle", help="task program simulated")
-    parser.add_argument("--episodes", type=int, default=16, help="accepted episodes wanted (simulate), generated "
+    parser.add_argument("--episodes", type=int, default=16, help="episodes simulated (simulate), accepted generated "
                                                                  "episodes wanted (expand)")
     parser.add_argument("--in-flight", type=int, default=2, help="batches in flight per device at the largest K")
     parser.add_argument("--tag", default="cpu")
