@@ -57,20 +57,26 @@ def run_k(k: int, steps: int, args: argparse.Namespace, work: Path, device: str,
     report = work / f"k{k}.json"
     every = max(1, steps // args.evals)
     factor = LR_SCALES[args.lr_scale](k)
-    overrides = ["--set", f"train.device={device}", "--set", "train.static=true", "--set", f"train.batch_size={args.batch}",
+    overrides = [*[a for s in args.overrides for a in ("--set", s)],  # the benchmark's own settings win
+                 "--set", f"train.device={device}", "--set", "train.static=true", "--set", f"train.batch_size={args.batch}",
                  "--set", f"train.base.steps={steps}", "--set", f"train.base.warmup_steps={max(1, steps // 10)}",
                  "--set", "train.projection.steps=0", "--set", "train.projection.warmup_steps=0",
                  "--set", f"train.eval_every_steps={every}", "--set", f"train.checkpoint_every_steps={steps}",
-                 *[a for s in args.overrides for a in ("--set", s)], *lr_overrides(base, factor)]
+                 *lr_overrides(base, factor)]
     cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc-per-node", str(k), "--master-port", str(free_port()),
            "-m", "stages.train", "--params", args.params, "--store", args.store, "--out", str(work / f"model_k{k}"),
            "--report", str(report), "--curves", str(work / f"curves_k{k}.csv"), *overrides]
     env = {**os.environ, **MULTICAST_OFF, "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", "1")}
+    log = work / f"k{k}.log"
     started = time.perf_counter()
-    done = subprocess.run(cmd, capture_output=True, text=True, env=env)
+    with log.open("w") as sink:
+        try:
+            code = subprocess.run(cmd, stdout=sink, stderr=subprocess.STDOUT, env=env, timeout=args.timeout).returncode
+        except subprocess.TimeoutExpired:
+            code = f"timed out after {args.timeout} s"
     wall = time.perf_counter() - started
-    if done.returncode != 0:
-        return {"gpus": k, "error": done.stderr[-3000:]}
+    if code != 0:
+        return {"gpus": k, "error": f"{code}: {log.read_text()[-3000:]}"}
     r = json.loads(report.read_text())
     steps_per_s = 1.0 / r["s_per_step_median"]
     return {"gpus": k, "processes": r["processes"], "steps": steps, "batch_per_process": args.batch, "lr_factor": factor,
@@ -142,6 +148,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--batch", type=int, default=8)
     parser.add_argument("--lr-scale", choices=sorted(LR_SCALES), default="linear",
                         help="the base learning rates at K processes (K x the batch): x K, x sqrt(K) or unchanged")
+    parser.add_argument("--timeout", type=float, default=900, help="seconds one K may take (its row says so)")
     parser.add_argument("--tag", default="cpu")
     parser.add_argument("--out-dir", default="reports/gpu")
     args = parser.parse_args(argv)

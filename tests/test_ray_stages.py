@@ -43,14 +43,15 @@ def _same_stores(a: Path, b: Path) -> list[str]:
     return sa.episode_ids
 
 
-def _same_reports(a: dict[str, Any], b: dict[str, Any]) -> None:
+def _same_reports(a: dict[str, Any], b: dict[str, Any], other: str = "ray") -> None:
     """Equal but for timings, output paths and where the work ran."""
     def kept(r: dict[str, Any]) -> dict[str, Any]:
         tasks = {name: {**t, "wall_s": None} for name, t in r.get("tasks", {}).items()}
         return {k: v for k, v in r.items() if k not in TIMING} | ({"tasks": tasks} if tasks else {})
 
     assert kept(a) == kept(b)
-    assert (a["executor"]["name"], b["executor"]["name"]) == ("local", "ray") and b["executor"]["failed_units"] == []
+    assert (a["executor"]["name"], b["executor"]["name"]) == ("local", other)
+    assert b["executor"].get("failed_units", []) == []
 
 
 @pytest.mark.parametrize("in_flight", [1, 2])
@@ -95,21 +96,22 @@ def render_inputs(synthetic_store: SyntheticStore) -> tuple[dict[str, Any], Path
     return params, synthetic_store(params, [("carry", "train"), ("fall", "train"), ("handoff", "test")], frames=5)
 
 
-def test_render_writes_the_same_frames_on_ray(tmp_path, render_inputs):
+@pytest.mark.parametrize("other", ["ray", "processes"])
+def test_render_writes_the_same_frames_on_ray_or_device_processes(tmp_path, render_inputs, other):
     params, store = render_inputs
     runs = {}
-    for executor in ("local", "ray"):
+    for executor in ("local", other):
         params["render"]["executor"] = executor
         d = tmp_path / executor
         runs[executor] = render_stage.render(params, [(store, d / "r.zarr")], d / "r.json", d / "sheet.png")
-    a, b = RenderedStore(tmp_path / "local/r.zarr"), RenderedStore(tmp_path / "ray/r.zarr")
+    a, b = RenderedStore(tmp_path / "local/r.zarr"), RenderedStore(tmp_path / other / "r.zarr")
     assert a.episode_ids() == b.episode_ids() == TrajectoryStore(store).episode_ids and a.attrs == b.attrs
     for eid in a.episode_ids():
         assert a.episode_attrs(eid) == b.episode_attrs(eid)
         for camera in a.cameras:
             np.testing.assert_array_equal(a.frames(eid, camera), b.frames(eid, camera), err_msg=f"{eid}/{camera}")
-    _same_reports(runs["local"], runs["ray"])
-    assert runs["ray"]["executor"]["units"] == 3 and (tmp_path / "ray/sheet.png").is_file()
+    _same_reports(runs["local"], runs[other], other)
+    assert runs[other]["executor"]["units"] == 3 and (tmp_path / other / "sheet.png").is_file()
 
 
 def test_a_render_unit_that_keeps_failing_leaves_no_store(tmp_path, render_inputs, monkeypatch, caplog):

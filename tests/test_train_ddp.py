@@ -137,10 +137,12 @@ def test_a_state_resumes_only_with_its_process_count():
 @pytest.mark.slow
 def test_scaling_benchmark_reports_each_process_count(store_path, tmp_path):
     """benchmarks/train_scaling.py on 1 and 2 CPU processes: a row each with its efficiency against one process and
-    a validation curve at the same sample counts; the table and the chart are written."""
+    a validation curve at the same sample counts (the params' own base.steps does not change them); the table and the
+    chart are written."""
     cmd = [sys.executable, "-m", "benchmarks.train_scaling", "--store", str(store_path), "--procs", "1,2",
            "--samples", "8", "--batch", "2", "--evals", "2", "--tag", "cpu_check", "--out-dir", str(tmp_path),
-           *(a for o in ("train.init_from=''", "train.val_windows=1", "train.rollout_frames=2")
+           *(a for o in ("train.init_from=''", "train.val_windows=1", "train.rollout_frames=2",
+                         "train.base.steps=1", "train.base.warmup_steps=0")
              for a in ("--set", o))]
     done = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, timeout=600,
                           env={**os.environ, "OMP_NUM_THREADS": "1"})

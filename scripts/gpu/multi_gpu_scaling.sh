@@ -14,7 +14,7 @@ GPUS=$(nvidia-smi -L | wc -l)
 NAME=${NAME:-$(nvidia-smi --query-gpu=name --format=csv,noheader | head -1 | grep -o 'H[0-9]*' | tr H h)x$GPUS}
 PROCS=${TRAIN_PROCS:-$(for k in 1 2 4 8; do [ $k -le $GPUS ] && echo -n "$k,"; done | sed 's/,$//')}
 SIM=(--set sim.device=cuda --set validate.device=cuda --set sim.iterations=20 --set sim.worlds=64)
-TRAIN=(--set "train.base={steps: 1, peak_lr: 1.0e-4, start_lr: 1.0e-6, final_lr: 5.0e-6, warmup_steps: 1}"
+TRAIN=(--set train.base.peak_lr=1.0e-4 --set train.base.start_lr=1.0e-6 --set train.base.final_lr=5.0e-6
   --set train.input_noise_m=3.0e-4 --set train.event_oversample=3.0 --set train.per_axis_scales=true
   --set train.val_windows=64 --set train.autocast_bf16=true --set train.tf32=true --set train.cuda_graph=true
   --set "train.init_from=''")

@@ -19,7 +19,7 @@ class RenderConfig:
     shadows: bool  # shadow rays from the key light (about 1.5x the cost)
     sheet_frames: int  # contact sheet: frames per episode and camera, evenly spaced
     sheet_episodes: int  # contact sheet: at most this many episodes (first ones of the first store)
-    executor: str = "local"  # local: in this process; ray: `episodes_per_unit` episodes per Ray task
+    executor: str = "local"  # local: in this process; ray / processes: `episodes_per_unit` episodes per unit
     episodes_per_unit: int = 4  # episodes one work unit renders (the frames do not depend on it)
 
     def validate(self) -> None:

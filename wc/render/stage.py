@@ -4,8 +4,8 @@ a JSON report and a contact sheet PNG.
 Every selected episode is rendered at the trajectory's frame rate (one image per stored frame, fps =
 1 / dt) by Newton's SensorCamera (wc.render.renderer). Outputs are written atomically; a missing input
 store, a camera link an episode lacks, or a task filter that matches nothing fails with a clear error.
-`render.episodes_per_unit` episodes are a work unit (wc.render.worker), rendered in this process or, with
-`executor: ray`, as Ray tasks; the frames are written in episode order either way.
+`render.episodes_per_unit` episodes are a work unit (wc.render.worker), rendered in this process, as Ray tasks
+(`executor: ray`) or in a process per GPU (`executor: processes`); the frames are written in episode order any way.
 """
 
 from __future__ import annotations
@@ -141,8 +141,8 @@ def render(params: dict[str, Any], pairs: Sequence[tuple[str | Path, str | Path]
     frames = sum(o["frames"] for o in outputs)
     if failed is None:
         write_contact_sheet(RenderedStore(pairs[0][1]), sheet, cfg.sheet_frames, cfg.sheet_episodes)
-    device, environment = ((totals["device"], totals["environment"] or environment_info("cpu")) if cfg.executor == "ray"
-                           else (local.device, local.environment))  # ray: where a unit ran, if one did
+    device, environment = ((totals["device"], totals["environment"] or environment_info("cpu")) if cfg.executor != "local"
+                           else (local.device, local.environment))  # ray, processes: where a unit ran, if one did
     result = {
         "outputs": outputs,
         "episodes": sum(o["episodes"] for o in outputs),

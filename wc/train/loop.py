@@ -291,6 +291,8 @@ def train(store_path: str | Path, out_dir: str | Path, model_cfg: ModelConfig, c
         report = _finish(model, work, out_dir, cfg, data, history, step_times, procs)
         report.update(static_meta())
     distributed.barrier(procs)
+    if trainer is not None:
+        trainer.release()
     distributed.stop(procs)
     return report
 

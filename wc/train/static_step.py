@@ -220,6 +220,13 @@ class StaticTrainer:
         layout_step.update()
         return loss
 
+    def release(self) -> None:
+        """Drop every layout's step and its CUDA graphs, before the process group ends: a captured NCCL all-reduce
+        holds its communicator, whose destruction then never returns (seen on two H200s)."""
+        self.steps.clear()
+        if torch.cuda.is_available():
+            torch.cuda.synchronize()
+
     def _grow(self, layout_step: LayoutStep, step_number: int) -> None:
         """Double the capacities of the sets that overflowed; every step is rebuilt with them."""
         over = layout_step.neighbors.overflowed()
