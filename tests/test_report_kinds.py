@@ -73,3 +73,14 @@ def test_the_page_leads_with_the_featured_headlines(tmp_path: Path) -> None:
 def test_few_trials_are_labelled_a_smoke_run() -> None:
     assert smoke_label({"trials": 1}).startswith("**A smoke run**")
     assert "smoke" not in smoke_label({"trials": 50}) and "no policy evaluation" in smoke_label(None)
+
+
+def test_data_generation_scaling_has_a_headline_per_stage_and_gpu_count() -> None:
+    rows = [{"gpus": 1, "stage": "simulate", "episodes_per_min": 40.0, "speedup": 1.0},
+            {"gpus": 2, "stage": "simulate", "episodes_per_min": 76.0, "speedup": 1.9}]
+    report = {"rows": rows, "environment": {"gpu": "2 x NVIDIA H200"}}
+    line = kind_of("generate_scaling_h200x2.json").headline(report, "generate_scaling_h200x2.json")
+    assert line.endswith("simulate on 1 GPU(s): 40 episodes/min (1x); simulate on 2 GPU(s): 76 episodes/min (1.9x)")
+    without = {**report, "rows": [{k: v for k, v in rows[0].items() if k != "speedup"}]}
+    with pytest.raises(HeadlineError, match="speedup"):
+        kind_of("generate_scaling_h200x2.json").headline(without, "generate_scaling_h200x2.json")

@@ -219,6 +219,20 @@ def _expand_settings(v: dict[str, Any]) -> str:
     return f"expansion's teacher agreement / RMS to Newton per slot-engine setting on {v['environment.gpu']}: {rows}"
 
 
+def _train_scaling(v: dict[str, Any]) -> str:
+    rows = "; ".join(f"{k} GPU(s): {_g(rate)} samples/s, efficiency {_g(eff, 2)}, val loss {_g(val)}"
+                     for k, rate, eff, val in zip(*(v[f"rows.*.{f}"].values() for f in (
+                         "gpus", "samples_per_s", "efficiency", "val_loss_after_samples"))))
+    return f"world-model training on K processes (DDP), {v['environment.gpu']}: {rows}"
+
+
+def _generate_scaling(v: dict[str, Any]) -> str:
+    rows = "; ".join(f"{stage} on {k} GPU(s): {_g(rate)} episodes/min ({_g(speedup, 2)}x)"
+                     for k, stage, rate, speedup in zip(*(v[f"rows.*.{f}"].values() for f in (
+                         "gpus", "stage", "episodes_per_min", "speedup"))))
+    return f"data generation across GPUs, {v['environment.gpu']}: {rows}"
+
+
 _POLICY = ("policy_type", "task", "lift_height_m", "hold_s")
 KINDS: tuple[ReportKind, ...] = (
     ReportKind("policy comparison", ("policy_*_arms.json",),
@@ -257,6 +271,12 @@ KINDS: tuple[ReportKind, ...] = (
     ReportKind("training speed", ("train_speed_*.json",),
                ("rows.*.setting", "rows.*.batch", "rows.*.speedup", "rows.*.new_steps_per_s", "targets_met"),
                _train_speed),
+    ReportKind("training on several GPUs", ("train_scaling_*.json",),
+               ("rows.*.gpus", "rows.*.samples_per_s", "rows.*.efficiency", "rows.*.val_loss_after_samples",
+                "environment.gpu"), _train_scaling),
+    ReportKind("data generation on several GPUs", ("generate_scaling_*.json",),
+               ("rows.*.gpus", "rows.*.stage", "rows.*.episodes_per_min", "rows.*.speedup", "environment.gpu"),
+               _generate_scaling),
     ReportKind("resumable training chunks", ("train_chunks_*.json",),
                _train_fields("result.", "best_val_loss", "constant_velocity_val_loss"),
                _train("result.", "best_val_loss", "constant_velocity_val_loss")),
