@@ -5,6 +5,8 @@
 #                                                   unpacked, then in the background: fresh lift_handle data (Newton at
 #                                                   20 VBD iterations, validated), train_scaling on it, generate_scaling
 #   bash scripts/gpu/multi_gpu_scaling.sh wait [S]  wait up to S seconds (default 540); progress and reports to $OUT
+#   bash scripts/gpu/multi_gpu_scaling.sh stop      end the background job
+# The job writes its reports to $R/reports (a device call's $OUT is emptied at the next call); `wait` copies them.
 # Settings: TRAIN_PROCS (K for training, default 1,2,4 up to the GPUs), SAMPLES (training samples per K, 19200),
 # GEN_DEVICES (K for simulate and expand, default 1,2), GEN_EPISODES (episodes per stage and K, 128: 4 batches of 32
 # worlds), NAME (report tag, default e.g. h200x4). NCCL's NVLink multicast stays off (benchmarks/train_scaling.py).
@@ -19,6 +21,7 @@ TRAIN=(--set train.base.peak_lr=1.0e-4 --set train.base.start_lr=1.0e-6 --set tr
   --set train.val_windows=64 --set train.autocast_bf16=true --set train.tf32=true --set train.cuda_graph=true
   --set "train.init_from=''")
 job() {
+  mkdir -p $R/reports
   step "data start ($GPUS GPUs: $(nvidia-smi --query-gpu=name --format=csv,noheader | head -1))"
   python3 -m stages.simulate "${SIM[@]}" --set "agent.tasks=[lift_handle]" --set agent.episodes_per_task=40 \
     --set agent.max_attempts_per_task=64 --set agent.workers=1 --out $R/raw.zarr --report $R/simulate.json \
@@ -27,12 +30,12 @@ job() {
     --raw $R/raw.zarr --out $R/store.zarr --report $R/validate.json >> $R/data.log 2>&1
   step "data rc=$? $(tail -c 300 $R/data.log | tr '\r\n' '  ')"
   python3 -m benchmarks.train_scaling --params params.yaml "${TRAIN[@]}" --store $R/store.zarr --procs $PROCS \
-    --samples ${SAMPLES:-19200} --tag $NAME --out-dir "$OUT" > $R/train_scaling.log 2>&1
+    --samples ${SAMPLES:-19200} --timeout 600 --tag $NAME --out-dir $R/reports > $R/train_scaling.log 2>&1
   step "train_scaling rc=$? $(tail -c 600 $R/train_scaling.log | tr '\r\n' '  ')"
   python3 -m benchmarks.generate_scaling --params params.yaml "${SIM[@]}" --set sim.worlds=32 --set expand.device=cuda \
     --set expand.batch_size=128 --set expand.slots.planner_workers=6 --devices ${GEN_DEVICES:-1,2} \
     --episodes ${GEN_EPISODES:-128} --store $R/store.zarr --model models/pretrained/worldcontact-lift-handle \
-    --tag $NAME --out-dir "$OUT" > $R/generate_scaling.log 2>&1
+    --tag $NAME --out-dir $R/reports > $R/generate_scaling.log 2>&1
   step "generate_scaling rc=$? $(tail -c 600 $R/generate_scaling.log | tr '\r\n' '  ')"
 }
 case "$1" in
@@ -42,6 +45,7 @@ case "$1" in
     background $R/job.sh
     sleep ${FIRST_WAIT:-60}; cat $R/steps.log ;;
   job) job ;;
-  wait) wait_bg "${2:-540}" $R/simulate.json $R/validate.json $R/*.log ;;
-  *) echo "usage: $0 start | wait [SECONDS]" >&2; exit 2 ;;
+  wait) wait_bg "${2:-540}" $R/simulate.json $R/validate.json; cp $R/*.log $R/reports/* "$OUT"/ 2>/dev/null; ls "$OUT" ;;
+  stop) kill -- -"$(cat $R/bg.pid)" ;;
+  *) echo "usage: $0 start | wait [SECONDS] | stop" >&2; exit 2 ;;
 esac
