@@ -58,7 +58,8 @@ def run_k(k: int, steps: int, args: argparse.Namespace, work: Path, device: str,
     every = max(1, steps // args.evals)
     factor = LR_SCALES[args.lr_scale](k)
     overrides = [*[a for s in args.overrides for a in ("--set", s)],  # the benchmark's own settings win
-                 "--set", f"train.device={device}", "--set", "train.static=true", "--set", f"train.batch_size={args.batch}",
+                 "--set", f"train.device={device}", "--set", "train.static=true",
+                 "--set", f"train.batch_size={args.batch}",
                  "--set", f"train.base.steps={steps}", "--set", f"train.base.warmup_steps={max(1, steps // 10)}",
                  "--set", "train.projection.steps=0", "--set", "train.projection.warmup_steps=0",
                  "--set", f"train.eval_every_steps={every}", "--set", f"train.checkpoint_every_steps={steps}",
@@ -79,7 +80,8 @@ def run_k(k: int, steps: int, args: argparse.Namespace, work: Path, device: str,
         return {"gpus": k, "error": f"{code}: {log.read_text()[-3000:]}"}
     r = json.loads(report.read_text())
     steps_per_s = 1.0 / r["s_per_step_median"]
-    return {"gpus": k, "processes": r["processes"], "steps": steps, "batch_per_process": args.batch, "lr_factor": factor,
+    return {"gpus": k, "processes": r["processes"], "steps": steps, "batch_per_process": args.batch,
+            "lr_factor": factor,
             "steps_per_s": steps_per_s, "samples_per_s": k * args.batch * steps_per_s, "wall_s": wall,
             "val_loss_after_samples": r["history"][-1]["val_loss"], "samples": k * args.batch * steps,
             "val_curve": [{"samples": k * args.batch * h["step"], "val_loss": h["val_loss"]} for h in r["history"]]}

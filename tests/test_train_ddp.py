@@ -17,22 +17,12 @@ import pytest
 import torch
 from safetensors.torch import load_file
 
-from tests.conftest import ROOT, default_params
+from tests.conftest import ROOT
 from wc.data.store import TrajectoryStore
 from wc.train.data import LayoutBatchSampler, phases_of, windows_of
 from wc.train.distributed import Processes
 from wc.train.loop import rank_streams
-from tests.test_train import EPISODES, TINY_TRAIN
-
-
-@pytest.fixture(scope="module")
-def params() -> dict[str, Any]:
-    return default_params(TINY_TRAIN)
-
-
-@pytest.fixture(scope="module")
-def store_path(synthetic_store, params) -> Path:
-    return synthetic_store(params, EPISODES, frames=10)
+from tests.test_train import params, store_path  # noqa: F401  (fixtures: the training tests' tiny store)
 
 
 def _free_port() -> int:

@@ -45,7 +45,8 @@ case "$1" in
     background $R/job.sh
     sleep ${FIRST_WAIT:-60}; cat $R/steps.log ;;
   job) job ;;
-  wait) wait_bg "${2:-540}" $R/simulate.json $R/validate.json; cp $R/*.log $R/reports/* "$OUT"/ 2>/dev/null; ls "$OUT" ;;
+  wait) wait_bg "${2:-540}" $R/simulate.json $R/validate.json
+    cp $R/*.log $R/reports/* "$OUT"/ 2>/dev/null; ls "$OUT" ;;
   stop) kill -- -"$(cat $R/bg.pid)" ;;
   *) echo "usage: $0 start | wait [SECONDS] | stop" >&2; exit 2 ;;
 esac

@@ -120,8 +120,8 @@ def _file_task(result: TaskResult, key: str, writer: TrajectoryWriter, memory: F
 def simulate(params: dict[str, Any], out: str | Path = SIMULATE["out"], report: str | Path = SIMULATE["report"],
              memory: str | Path | None = SIMULATE["memory"], max_minutes: float = 0.0) -> dict[str, Any]:
     """Run every configured task until it has its accepted episodes (or runs out of attempts), in
-    `agent.workers` processes, on Ray or in device processes (`agent.executor`); write the raw store (accepted and rejected episodes, in
-    task order), the report, lift curves beside the report (simulate_lift.csv / .png), and append the outcomes to
+    `agent.workers` processes, on Ray or in device processes (`agent.executor`); write the raw store (accepted and
+    rejected episodes, in task order), the report, lift curves beside the report (simulate_lift.csv / .png), and append the outcomes to
     the agent's failure memory (None: none), saved after each task. max_minutes > 0: no batch of episodes starts
     after that wall time (a chunked GPU job; the report's `stopped_early` says so). Ray units that kept failing:
     the report lists them, no store is written, UnitsFailed."""

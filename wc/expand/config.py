@@ -72,8 +72,8 @@ class ExpandConfig:
     device: str = "cpu"  # cpu | cuda | cuda:k | auto
     seed: int = 0
     max_minutes: float = 0.0  # no batch started after this much wall time (0: no limit); the report says so
-    executor: str = "local"  # local: in this process; ray / processes: each batch's rollouts and checks as a Ray task /
-    # in one process per GPU (engine batches)
+    executor: str = "local"  # local: in this process; ray / processes: each batch's rollouts and checks as a Ray
+    # task / in one process per GPU (engine batches)
     batches_in_flight: int = 1  # batches planned before the earlier ones' verdicts are filed (1: each plan sees every
     # earlier verdict); the episodes depend on it, not on the executor
     # slots: batch_size slots refilled as episodes end or fail, fixed-pass projection, checks on the device

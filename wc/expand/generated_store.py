@@ -1,14 +1,11 @@
-"""Writing generated episodes: the source store's scene copied into a generated store, and the attrs a generated
-episode carries (its spec, parent, rigid move and verdict), whichever engine generated it."""
+"""The attrs a generated episode carries (its spec, parent, rigid move and verdict), whichever engine generated it;
+the source store's scene goes into a generated store by wc.data.store.copy_scene."""
 
 from __future__ import annotations
 
 from typing import Any
 
-from wc.data.store import copy_scene
 from wc.expand.plan import PlannedEpisode, SourceEpisode
-
-__all__ = ["copy_scene", "episode_attrs"]
 
 
 def episode_attrs(planned: PlannedEpisode, source: SourceEpisode, failure: str | None = None,

@@ -83,8 +83,8 @@ def run_slots(model: SlotModel, pool: PlanPool, task: Task, scene: Scene, source
               writer: TrajectoryWriter | None, rejected_writer: TrajectoryWriter | None, started: float,
               model_sha256: str | None = None, shard: int = 0) -> SlotExpansion:
     """Expand on the slots, planning in `pool`, until the target is met or the attempts run out; each filed episode
-    goes to `writer` (accepted) or `rejected_writer` (None: not kept); `shard`: whose plan seeds. Returns the finished expansion (its counts and
-    timing)."""
+    goes to `writer` (accepted) or `rejected_writer` (None: not kept); `shard`: whose plan seeds. Returns the finished
+    expansion (its counts and timing)."""
     cfg, links = model.cfg, len(scene.link_names)
     bar = tqdm(total=wanted, desc=f"expand {task.name}", unit="trajectory")
 

@@ -40,12 +40,12 @@ from tqdm import tqdm
 
 from wc.agent.planner import CoveragePlanner
 from wc.config import load_section, params_hash, without_keys
-from wc.data.store import TrajectoryStore, TrajectoryWriter
+from wc.data.store import TrajectoryStore, TrajectoryWriter, copy_scene
 from wc.distributed import UnitsFailed, Unit, WorkerSpec, drive, every_unit, open_executor, uses_cuda
 from wc.model.predictor import CHECKPOINT
 from wc.model_ref import model_record, resolve_model_dir
 from wc.expand.config import ExpandConfig
-from wc.expand.generated_store import copy_scene, episode_attrs
+from wc.expand.generated_store import episode_attrs
 from wc.expand.plan_pool import PlanPool
 from wc.expand.slot_expansion import SlotExpansion
 from wc.expand.slot_stage import SlotModel, run_slots

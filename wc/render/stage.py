@@ -141,8 +141,9 @@ def render(params: dict[str, Any], pairs: Sequence[tuple[str | Path, str | Path]
     frames = sum(o["frames"] for o in outputs)
     if failed is None:
         write_contact_sheet(RenderedStore(pairs[0][1]), sheet, cfg.sheet_frames, cfg.sheet_episodes)
-    device, environment = ((totals["device"], totals["environment"] or environment_info("cpu")) if cfg.executor != "local"
-                           else (local.device, local.environment))  # ray, processes: where a unit ran, if one did
+    device, environment = ((totals["device"], totals["environment"] or environment_info("cpu"))
+                           if cfg.executor != "local"  # ray, processes: where a unit ran, if one did
+                           else (local.device, local.environment))
     result = {
         "outputs": outputs,
         "episodes": sum(o["episodes"] for o in outputs),

@@ -233,7 +233,7 @@ def train(store_path: str | Path, out_dir: str | Path, model_cfg: ModelConfig, c
         save_weights(model, work / "last.safetensors", {**meta, **static_meta(), "step": step, "stage": stage,
                                                         "projection": stage == "projection"})
         save_state(state_path, {"model": model.state_dict(), "optimizer": optimizer.state_dict(), "step": step,
-                                "history": history, "best": best, "recent": recent, **ranks[0], "ranks": ranks,
+                                "history": history, "best": best, "recent": recent, "ranks": ranks,
                                 **static_meta()})
 
     def static_meta() -> dict[str, Any]:
