@@ -196,7 +196,8 @@ def test_max_minutes_stops_with_a_complete_checkpoint(store_path, params, tmp_pa
     report = run(p, store_path, tmp_path / "m", tmp_path / "r.json", tmp_path / "c.csv")
     assert report["complete"] is False and report["step"] == 1
     state = torch.load(tmp_path / "m.partial" / "last_state.pt", weights_only=False)
-    assert state["step"] == 1 and {"model", "optimizer", "sampler", "rng", "capacities"} <= set(state)
+    assert state["step"] == 1 and {"model", "optimizer", "ranks", "capacities"} <= set(state)
+    assert len(state["ranks"]) == 1 and {"sampler", "rng"} <= set(state["ranks"][0])  # one process: one rank's streams
     assert not (tmp_path / "r.json").exists()
 
 
