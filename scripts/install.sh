@@ -24,6 +24,6 @@ if [ ! -x .venv/bin/python ] || ! .venv/bin/python -c 'import sys; sys.exit(sys.
   "$py" -m venv .venv
 fi
 .venv/bin/python -m pip install -q --disable-pip-version-check uv==0.13.9
-.venv/bin/uv pip install -q --python .venv/bin/python -r requirements.lock
+.venv/bin/uv pip install -q --python .venv/bin/python --compile-bytecode -r requirements.lock  # bytecode now, not in every stage process
 .venv/bin/uv pip install -q --python .venv/bin/python --no-deps -e .
 echo "install: done ($(du -sh .venv | cut -f1) in .venv)"

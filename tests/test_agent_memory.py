@@ -221,6 +221,22 @@ def test_memory_persists_across_runs(tmp_path):
     assert len(FailureMemory.load(path)) == 7 + 12
 
 
+def test_a_fresh_run_ignores_the_file_and_rewrites_it_a_kept_run_learns_from_it(tmp_path):
+    path = tmp_path / "memory.json"
+    first = CoveragePlanner(FailureMemory.for_run(path, "fresh"))
+    run(first, FakeTask(), range(9))
+    first.memory.save()
+    later = range(50, 80)
+    fresh = CoveragePlanner(FailureMemory.for_run(path, "fresh"))
+    assert run(fresh, FakeTask(), later) == run(CoveragePlanner(), FakeTask(), later)  # as if no earlier run
+    kept = CoveragePlanner(FailureMemory.for_run(path, "kept"))
+    assert len(kept.memory) == 9 and run(kept, FakeTask(), later) != run(CoveragePlanner(), FakeTask(), later)
+    fresh.memory.save()
+    assert len(FailureMemory.load(path)) == 30  # the fresh run's outcomes alone
+    with pytest.raises(ValueError, match="fresh or kept, got 'old'"):
+        FailureMemory.for_run(path, "old")
+
+
 def test_same_seeds_and_memory_give_the_same_proposals(tmp_path):
     path = tmp_path / "memory.json"
     run(CoveragePlanner(FailureMemory(path)), FakeTask(), range(9))  # not saved: nothing persists

@@ -31,6 +31,7 @@ def test_a_bad_executor_is_named(section, value):
 
 @pytest.mark.parametrize("key, value, message", [
     ("agent.batches_in_flight", 0, "agent: batches_in_flight must be >= 1, got 0"),
+    ("agent.memory", "old", "agent: memory must be fresh or kept, got 'old'"),
     ("expand.batches_in_flight", -1, "expand: batches_in_flight must be >= 1, got -1"),
     ("render.episodes_per_unit", 0, "render: episodes_per_unit must be a positive integer, got 0"),
     ("ray.address", "' '", "ray: address must be null or a Ray address .*, got ' '"),

@@ -27,7 +27,7 @@ from wc.policy_eval.env import WorldContactLiftEnv
 from wc.policy_eval.closed_loop import OracleActor, run_episode
 from wc.policy_eval.plots import CSV_HEADER, write_success_metrics, write_success_table
 from wc.policy_eval.stage import policy_dirs, run
-from wc.policy_eval.success import LiftHoldMonitor, first_success, hold_frames, wilson_interval
+from wc.policy_eval.success import LiftHoldMonitor, TrialJudge, first_success, hold_frames, wilson_interval
 from wc.policy_eval.trials import run_trials, trial_jobs
 
 SIZE = 32  # px: both cameras
@@ -65,6 +65,31 @@ def test_success_needs_an_unbroken_hold() -> None:
     assert monitor.failure() == "dropped"
     with pytest.raises(ValueError, match="not finite"):
         monitor.update(float("nan"))
+
+
+def _judged(heights: list[float], hold: int = 3, max_steps: int = 10) -> tuple[TrialJudge, list[tuple]]:
+    judge, verdicts = TrialJudge(0.05, hold, max_steps), []
+    judge.start(0.0)
+    for h in heights:
+        verdicts.append(judge.step(h))
+        if judge.done:
+            break
+    return judge, verdicts
+
+
+def test_a_trial_ends_once_its_hold_can_no_longer_complete() -> None:
+    """max_steps 10, hold 3 intervals (a streak of 4 frames): a bag never lifted has lost at step 7 (3 steps left
+    make a streak of 3); one lifted from step 7 on could still succeed there, and does at step 10."""
+    judge, verdicts = _judged([0.0] * 10)
+    assert (judge.steps, judge.failure, verdicts[-1]) == (7, "not_lifted", (False, False, True))
+    judge, verdicts = _judged([0.0] * 6 + [0.06] * 4)
+    assert (judge.steps, judge.success, verdicts[-1]) == (10, True, (True, True, False))
+    judge, _ = _judged([0.06, 0.06] + [0.0] * 8)  # lifted, dropped: lost too once 3 steps are left
+    assert (judge.steps, judge.failure) == (7, "dropped")
+    judge, _ = _judged([0.06] * 3, hold=20)  # a hold longer than the trial: lost at the first step
+    assert (judge.steps, judge.failure) == (1, "not_held")
+    with pytest.raises(RuntimeError, match="verdict is final"):
+        judge.step(0.06)
 
 
 # --- the environment on real Newton ----------------------------------------------------------------------------
@@ -128,12 +153,12 @@ def test_task_program_replayed_closed_loop_succeeds(env: WorldContactLiftEnv) ->
     assert outcome.success and outcome.failure is None, outcome
     assert outcome.max_lift_m >= env.cfg.lift_height_m
     assert outcome.steps < env._max_episode_steps and len(frames) == outcome.steps + 1
-    # a policy that leaves the bag on the table fails with not_lifted, truncated at max_steps
+    # a policy that leaves the bag on the table fails with not_lifted, ended at once: a 2 s hold cannot fit in 3 steps
     env.cfg = dataclasses.replace(env.cfg, max_steps=3)
     hold = lambda observation: observation["agent_pos"].copy()  # noqa: E731
     hold.reset = lambda: None
     outcome, _, _ = run_episode(env, hold, ORACLE_SEED)
-    assert (outcome.success, outcome.failure, outcome.steps) == (False, "not_lifted", 3)
+    assert (outcome.success, outcome.failure, outcome.steps) == (False, "not_lifted", 1)
 
 
 # --- the stage with two tiny random ACT policies ---------------------------------------------------------------

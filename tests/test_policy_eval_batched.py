@@ -22,7 +22,7 @@ from wc.policy_eval.trials import TrialJob, trial_units
 
 SEEDS = [ORACLE_SEED, ORACLE_SEED + 1]
 STEPS = 8  # max_steps: the program's first frames, the bag still on the table (its lowest vertex ~4 mm up) ...
-RESTING = dict(lift_height_m=0.0035, hold_s=1.0)  # ... so it is "lifted" from frame 0 but never held: not_held
+RESTING = dict(lift_height_m=0.05, hold_s=0.08)  # ... never lifted: with a 2-frame hold lost (not_lifted) at step 6
 NAN_STEP = 4  # the second trial's actions turn non-finite here: it ends early, the first steps on
 
 
@@ -76,11 +76,11 @@ def test_each_trial_starts_from_the_per_trial_state(env: WorldContactLiftEnv, ba
 @pytest.mark.slow
 def test_replayed_program_gets_the_per_trial_verdicts(env: WorldContactLiftEnv, batched: BatchedLiftEnv) -> None:
     """The task's program replayed in a batch of two gets each trial's verdict alone: the same success, failure and
-    steps (not_held at max_steps; non_finite_action for the trial whose actions turn NaN, which then keeps its verdict
+    steps (not_lifted once the hold cannot complete; non_finite_action for the trial whose actions turn NaN, which keeps its verdict
     while the other steps on), and the same max lift up to the B-world solver's order of work (batched_env)."""
     alone = [run_episode(env, OracleActor(env), SEEDS[0])[0], run_episode(env, NonFiniteFrom(OracleActor(env)),
                                                                            SEEDS[1])[0]]
-    assert [(o.success, o.failure, o.steps) for o in alone] == [(False, "not_held", STEPS),
+    assert [(o.success, o.failure, o.steps) for o in alone] == [(False, "not_lifted", STEPS - 2),
                                                                 (False, "non_finite_action", NAN_STEP)]
     together, frames, s_per_step = run_batch(batched, NonFiniteFrom(OracleActor(batched), rows=[1]), SEEDS,
                                              record=[True, False])
@@ -88,7 +88,7 @@ def test_replayed_program_gets_the_per_trial_verdicts(env: WorldContactLiftEnv, 
         assert (a.seed, a.episode_seed, a.success, a.failure, a.steps, a.cell) == \
                (b.seed, b.episode_seed, b.success, b.failure, b.steps, b.cell), (a, b)
         assert b.max_lift_m == pytest.approx(a.max_lift_m, abs=5e-4)
-    assert len(frames[0]) == STEPS + 1 and frames[0][0].shape == (SIZE, 2 * SIZE, 3) and not frames[1]
+    assert len(frames[0]) == STEPS - 1 and frames[0][0].shape == (SIZE, 2 * SIZE, 3) and not frames[1]
     assert s_per_step > 0 and batched.done and batched.judges[1].steps == NAN_STEP
     with pytest.raises(RuntimeError, match="every trial ended"):
         batched.step(np.zeros((2, 7), np.float32))

@@ -70,6 +70,15 @@ class FailureMemory:
             raise ValueError(f"{path}: 'outcomes' must be a list")
         return cls(path, (_parse_outcome(entry, f"{path}: outcomes[{i}]") for i, entry in enumerate(data["outcomes"])))
 
+    @classmethod
+    def for_run(cls, path: str | Path | None, mode: str) -> FailureMemory:
+        """The memory a simulate run starts from and saves to `path` (None: none). mode fresh: no outcomes, so
+        the run's episodes depend on its params and seed alone and the file is rewritten with this run's;
+        kept: the file's (`load`), appended to."""
+        if mode not in ("fresh", "kept"):
+            raise ValueError(f"agent memory mode must be fresh or kept, got {mode!r}")
+        return cls.load(path) if mode == "kept" and path is not None else cls(path)
+
     def record(self, task_key: str, spec: EpisodeSpec, failure: str | None,
                failure_frame: int | None = None) -> Outcome:
         """Append the outcome of episode `spec` (not saved until `save`)."""

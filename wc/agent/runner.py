@@ -45,9 +45,13 @@ class AgentConfig:
     # one process per GPU (wc.distributed)
     batches_in_flight: int = 1  # batches of a task proposed before the earlier ones' verdicts are filed (1: each
     # proposal sees every earlier verdict); the episodes depend on it, not on the executor
+    memory: str = "fresh"  # fresh: the planner starts from no outcomes (the episodes depend on params and seed alone);
+    # kept: from the memory file's, left by earlier runs (the episodes then depend on that history)
 
     def validate(self) -> None:
         check_executor(self.executor)
+        if self.memory not in ("fresh", "kept"):
+            raise ValueError(f"memory must be fresh or kept, got {self.memory!r}")
         if self.batches_in_flight < 1:
             raise ValueError(f"batches_in_flight must be >= 1, got {self.batches_in_flight}")
         if not self.tasks:

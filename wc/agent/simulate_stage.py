@@ -121,8 +121,9 @@ def simulate(params: dict[str, Any], out: str | Path = SIMULATE["out"], report: 
              memory: str | Path | None = SIMULATE["memory"], max_minutes: float = 0.0) -> dict[str, Any]:
     """Run every configured task until it has its accepted episodes (or runs out of attempts), in
     `agent.workers` processes, on Ray or in device processes (`agent.executor`); write the raw store (accepted and
-    rejected episodes, in task order), the report, lift curves beside the report (simulate_lift.csv / .png), and append the outcomes to
-    the agent's failure memory (None: none), saved after each task. max_minutes > 0: no batch of episodes starts
+    rejected episodes, in task order), the report, lift curves beside the report (simulate_lift.csv / .png), and the
+    outcomes to the agent's failure memory file (None: none), saved after each task: this run's alone
+    (`agent.memory: fresh`) or appended to the file's (`kept`, which the planner then learns from). max_minutes > 0: no batch of episodes starts
     after that wall time (a chunked GPU job; the report's `stopped_early` says so). Ray units that kept failing:
     the report lists them, no store is written, UnitsFailed."""
     scene_cfg = load_section(params, "scene", SceneConfig)
@@ -135,7 +136,7 @@ def simulate(params: dict[str, Any], out: str | Path = SIMULATE["out"], report: 
     if (agent_cfg.workers > 1 or agent_cfg.executor != "local") and len(set(keys.values())) < len(keys):
         raise ValueError("tasks with identical params share their outcomes, so they cannot run in separate "
                          "workers; set agent.workers=1 and agent.executor=local")
-    outcomes = FailureMemory.load(memory) if memory is not None else FailureMemory()
+    outcomes = FailureMemory.for_run(memory, agent_cfg.memory)
     per_task: dict[str, dict[str, Any]] = {}
     curves: dict[str, tuple[Any, str]] = {}
     started = time.perf_counter()
@@ -174,7 +175,8 @@ def simulate(params: dict[str, Any], out: str | Path = SIMULATE["out"], report: 
         "params_hash": phash,
         "tasks": per_task,
         "bag_vertices": len(union.objects["bag"].vertices) if "bag" in union.objects else 0,
-        "memory": {"path": str(memory) if memory is not None else None, "outcomes": len(outcomes)},
+        "memory": {"path": str(memory) if memory is not None else None, "mode": agent_cfg.memory,
+                   "outcomes": len(outcomes)},
         "environment": environment or environment_info(NewtonSimulator.device_name(sim_cfg)
                                                        if agent_cfg.executor == "local" else "cpu"),  # else a worker's
     }

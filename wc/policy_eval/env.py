@@ -13,8 +13,9 @@ decode (wc.policy.video_roundtrip), so the policy sees what it was trained on. O
 pixels.wrist (H, W, 3) uint8 RGB and agent_pos (7,) float32 = the commanded right arm (the dataset's observation.state).
 
 Success (info["is_success"], reward 1, terminated): the bag's lowest vertex >= lift_height_m above the
-table top at every frame for hold_s. Also terminated: a non-finite action or physics state; truncated:
-max_steps (null: the planned task program's length plus the hold).
+table top at every frame for hold_s. Also terminated: a non-finite action or physics state; truncated: once the
+hold can no longer complete by max_steps (null: the planned task program's length plus the hold), the same
+verdict as stepping on to max_steps.
 """
 
 from __future__ import annotations

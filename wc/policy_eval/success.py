@@ -41,8 +41,10 @@ class LiftHoldMonitor:
 
 class TrialJudge:
     """One closed-loop trial's verdict, fed once per frame: success (the lift held), terminated by a non-finite
-    action or state, or truncated at `max_steps` (failed as the monitor says). Once the trial has ended its verdict is
-    final: both the per-trial env and the batched one (whose ended worlds keep stepping) judge with this."""
+    action or state, or truncated (failed as the monitor says) at the first frame from which the hold can no longer
+    complete by `max_steps`: the verdict it would get at max_steps, without stepping a lost trial on. Once the trial
+    has ended its verdict is final: both the per-trial env and the batched one (whose ended worlds keep stepping)
+    judge with this."""
 
     def __init__(self, lift_height_m: float, hold: int, max_steps: int) -> None:
         self.monitor = LiftHoldMonitor(lift_height_m, hold)
@@ -65,7 +67,8 @@ class TrialJudge:
         self.failure = failure
         self.success = failure is None and self.monitor.update(height_m)
         terminated = self.success or failure is not None
-        truncated = not terminated and self.steps >= self.max_steps
+        reachable = self.monitor.streak + (self.max_steps - self.steps)  # longest streak possible at max_steps
+        truncated = not terminated and reachable <= self.monitor.hold  # always so at max_steps without success
         if truncated:
             self.failure = self.monitor.failure()
         self.done = terminated or truncated
