@@ -181,6 +181,15 @@ def _convergence(v: dict[str, Any]) -> str:
     return f"Newton against itself, per VBD iteration count: {rows}"
 
 
+def _fabric_stretch(v: dict[str, Any]) -> str:
+    def row(r: dict[str, Any]) -> str:
+        lifted = ((r.get("stretch") or {}).get("lifted") or {}).get("all") or {}
+        strain = f"p99 {100 * lifted['p99']:.1f} %, worst {100 * lifted['max']:.1f} %" if lifted else "no lifted frame"
+        accepted = "-" if r.get("accepted") is None else f"{r['accepted']:.2f}"
+        return f"{r['setting']} ({r['iterations']} iterations): {accepted} accepted, lifted strain {strain}"
+    return "bag edge strain while lifting, per setting: " + "; ".join(row(r) for r in v["settings"])
+
+
 def _rollout_speed(v: dict[str, Any]) -> str:
     rows = ", ".join(f"{name} {_g(value)} (target {'>=' if higher else '<='} {_g(goal)})"
                      for name, (value, goal, higher) in v["targets"].items())
@@ -288,6 +297,8 @@ KINDS: tuple[ReportKind, ...] = (
     ReportKind("Newton convergence", ("newton_convergence_*.json",),
                ("settings.*.iterations", "settings.*.accepted", "settings.*.self_agreement",
                 "settings.*.rollout_s_per_episode"), _convergence),
+    ReportKind("fabric stretch", ("fabric_stretch_*.json",), ("settings", "settings.*.setting",
+                                                              "settings.*.iterations"), _fabric_stretch),
     ReportKind("rollout speed", ("rollout_speed_*.json",), ("vertices", "targets"), _rollout_speed),
     ReportKind("rollout profile", ("rollout_profile_*.json",),
                ("runs.*.autocast_bf16", "runs.*.batch", "runs.*.vertices", "runs.*.ms_per_step_median"), _profile),

@@ -21,6 +21,7 @@ from wc.scene.piper import PAD_CENTRE_IN_FINGER_M, PAD_HALF_EXTENTS_M
 from wc.scene.scene import Scene
 from wc.rotations import quat_conjugate, quat_matrices, quat_multiply, quat_rotate
 from wc.validate.config import ValidateConfig
+from wc.validate.edge_stretch import edge_strain
 from wc.validate.self_intersection import first_crossing_frame, unique_edges
 
 OPENING_COLUMNS = {"left": 6, "right": 13}  # action = [q_L (6), d_L, q_R (6), d_R]
@@ -125,9 +126,7 @@ def speed_and_strain(scene: Scene, ep: Episode) -> tuple[np.ndarray, np.ndarray]
     for name, mesh in scene.objects.items():
         edges = unique_edges(mesh.faces)
         rest = np.linalg.norm(mesh.vertices[edges[:, 0]] - mesh.vertices[edges[:, 1]], axis=-1)
-        x = ep.x[:, slices[name]]
-        length = np.linalg.norm(x[:, edges[:, 0]] - x[:, edges[:, 1]], axis=-1)
-        strain = np.maximum(strain, _nan_max(length / np.maximum(rest, 1e-12) - 1.0))
+        strain = np.maximum(strain, _nan_max(edge_strain(ep.x[:, slices[name]], edges, rest)))
     return speed, strain
 
 
