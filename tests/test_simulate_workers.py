@@ -1,4 +1,5 @@
-"""Stage `simulate` with agent.workers: worker processes give the same store and memory as one process."""
+"""Stage `simulate` with agent.workers: worker processes give the same store and memory as one process, and read an
+earlier run's memory alike (agent.memory kept)."""
 
 import json
 from pathlib import Path
@@ -35,7 +36,7 @@ def runs(tmp_path_factory) -> dict[int, tuple[Path, dict]]:
     for workers in (1, 2):
         path = tmp_path_factory.mktemp(f"workers{workers}")
         _seed_memory(path / "memory.json")
-        out[workers] = path, _run(path, workers)
+        out[workers] = path, _run(path, workers, ("agent.memory=kept",))  # the planners learn from the seeded file
     return out
 
 
@@ -65,6 +66,19 @@ def test_workers_file_the_same_outcomes(runs):
     assert memories[0] == memories[1]
     assert [(o["task"], o["cell"]) for o in memories[0]][:3] == [("bag_drop", 0), ("sphere_drop", 0), ("bag_drop", 1)]
     assert memories[0][-1]["task"] == "sphere_drop"
+
+
+@pytest.mark.slow
+def test_a_fresh_run_ignores_the_memory_file_and_rewrites_it(tmp_path):
+    """agent.memory fresh (the default): the seeded failures in cell 0 are not read, so the planners start in cell 0
+    as a first run does, and the file keeps this run's outcomes alone."""
+    _seed_memory(tmp_path / "memory.json")
+    _run(tmp_path, 1)
+    store = TrajectoryStore(tmp_path / "raw.zarr")
+    assert {store.episode_attrs(e)["cell"] for e in store.episode_ids} == {0}
+    outcomes = json.loads((tmp_path / "memory.json").read_text())["outcomes"]
+    assert len(outcomes) == len(store.episode_ids)  # one per simulated episode (the raw store keeps rejected ones)
+    assert [(o["task"], o["cell"]) for o in outcomes][:2] == [("bag_drop", 0), ("sphere_drop", 0)]
 
 
 @pytest.mark.parametrize("workers, message", [(0, "workers must be >= 1, got 0"), (-2, "workers must be >= 1")])
