@@ -31,8 +31,8 @@ from typing import Any
 import numpy as np
 
 from benchmarks.newton_convergence import draw_specs
-from wc.agent.replay import Plan, replay, share
-from wc.agent.runner import TaskWorld, build_task_world, reset_batch
+from wc.agent.replay import plan_specs, replay, share
+from wc.agent.runner import TaskWorld, build_task_world
 from wc.config import add_params_arguments, load_section, read_params
 from wc.devices import resolve_warp_device
 from wc.reports import environment_info, pyplot, save_figure_atomic, write_json_atomic
@@ -113,10 +113,7 @@ def measure(params: dict[str, Any], task_name: str, specs: list[EpisodeSpec], se
     sim_cfg, validate_cfg = load_section(params, "sim", SimConfig), load_section(params, "validate", ValidateConfig)
     world = build_task_world(load_section(params, "scene", SceneConfig), sim_cfg, get_task(task_name, params))
     started = time.perf_counter()
-    plans = []
-    for first in range(0, len(specs), sim_cfg.worlds):
-        runnable, _ = reset_batch(world, specs[first:first + sim_cfg.worlds])
-        plans += [Plan(spec, state.x, state.v, actions) for spec, state, actions in runnable]
+    plans = plan_specs(world, specs, sim_cfg.worlds)
     reset_s = time.perf_counter() - started
     label = ",".join(setting) or "base"
     row: dict[str, Any] = {"setting": label, "overrides": setting, "iterations": sim_cfg.iterations,

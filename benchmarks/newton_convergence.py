@@ -24,8 +24,8 @@ from pathlib import Path
 from typing import Any
 
 from wc.agent.planner import CoveragePlanner
-from wc.agent.replay import Plan, replay, same_verdict, self_agreement, share
-from wc.agent.runner import build_task_world, reset_batch
+from wc.agent.replay import plan_specs, replay, same_verdict, self_agreement, share
+from wc.agent.runner import build_task_world
 from wc.devices import resolve_warp_device
 from wc.config import add_params_arguments, load_section, read_params
 from wc.reports import environment_info, pyplot, save_figure_atomic, write_json_atomic
@@ -55,10 +55,7 @@ def measure(params: dict[str, Any], task_name: str, specs: list[EpisodeSpec], sc
     sim_cfg, validate_cfg = load_section(params, "sim", SimConfig), load_section(params, "validate", ValidateConfig)
     world = build_task_world(load_section(params, "scene", SceneConfig), sim_cfg, get_task(task_name, params))
     started = time.perf_counter()
-    plans = []
-    for first in range(0, len(specs), sim_cfg.worlds):
-        runnable, _ = reset_batch(world, specs[first:first + sim_cfg.worlds])
-        plans += [Plan(spec, state.x, state.v, actions) for spec, state, actions in runnable]
+    plans = plan_specs(world, specs, sim_cfg.worlds)
     reset_s = time.perf_counter() - started
     if not plans:
         raise RuntimeError(f"newton convergence: none of {len(specs)} {task_name} specs could be planned")

@@ -19,6 +19,7 @@ from wc.reports import write_json_atomic
 from wc.tasks.base import EpisodeSpec
 
 SCHEMA = "worldcontact-agent-memory/1"
+MODES = ("fresh", "kept")  # agent.memory: where a simulate run's planner starts (FailureMemory.for_run)
 
 
 @dataclass(frozen=True)
@@ -75,7 +76,7 @@ class FailureMemory:
         """The memory a simulate run starts from and saves to `path` (None: none). mode fresh: no outcomes, so
         the run's episodes depend on its params and seed alone and the file is rewritten with this run's;
         kept: the file's (`load`), appended to."""
-        if mode not in ("fresh", "kept"):
+        if mode not in MODES:
             raise ValueError(f"agent memory mode must be fresh or kept, got {mode!r}")
         return cls.load(path) if mode == "kept" and path is not None else cls(path)
 

@@ -17,7 +17,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from tqdm import tqdm
 
-from wc.agent.runner import TaskWorld, execute, judge
+from wc.agent.runner import TaskWorld, execute, judge, reset_batch
 from wc.dynamics import ObjectState
 from wc.tasks.base import EpisodeSpec
 from wc.validate.config import ValidateConfig
@@ -39,6 +39,15 @@ class Plan:
 
     def reference(self) -> np.ndarray | None:
         return self.reference_x() if callable(self.reference_x) else self.reference_x
+
+
+def plan_specs(world: TaskWorld, specs: list[EpisodeSpec], worlds: int) -> list[Plan]:
+    """The specs reset, settled and planned as the agent does, `worlds` at a time; the unplannable ones are left out."""
+    plans = []
+    for first in range(0, len(specs), worlds):
+        runnable, _ = reset_batch(world, specs[first:first + worlds])
+        plans += [Plan(spec, state.x, state.v, actions) for spec, state, actions in runnable]
+    return plans
 
 
 @dataclass

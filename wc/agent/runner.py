@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from wc.agent.memory import MODES as MEMORY_MODES
 from wc.agent.planner import Planner
 from wc.distributed import LocalExecutor, Unit, WorkerSpec, check_executor, drive
 from wc.reports import environment_info
@@ -50,7 +51,7 @@ class AgentConfig:
 
     def validate(self) -> None:
         check_executor(self.executor)
-        if self.memory not in ("fresh", "kept"):
+        if self.memory not in MEMORY_MODES:
             raise ValueError(f"memory must be fresh or kept, got {self.memory!r}")
         if self.batches_in_flight < 1:
             raise ValueError(f"batches_in_flight must be >= 1, got {self.batches_in_flight}")
