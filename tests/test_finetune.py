@@ -17,8 +17,10 @@ from typing import Any
 import numpy as np
 import pytest
 import torch
+import yaml
 from lerobot.datasets import LeRobotDataset
 
+from benchmarks import policy_placement
 from tests.stage_run import assert_one_line_error, run_stage
 from wc.policy.finetune_stage import arm_gpus, run, stage_params
 from wc.config import ParamsError, load_section
@@ -326,3 +328,21 @@ def test_pi05_processors_match_lerobots_factory(data_root: Path, tiny_pi05: Path
     for a, b in zip(ours, theirs, strict=True):
         assert [type(s) for s in a.steps] == [type(s) for s in b.steps]
         assert [s.get_config() for s in a.steps] == [s.get_config() for s in b.steps]
+
+
+@pytest.mark.slow
+def test_placement_benchmark_times_both_schedules_of_the_same_training(data_root: Path, tmp_path: Path) -> None:
+    params = tmp_path / "params.yaml"
+    params.write_text(yaml.safe_dump({"policy": ACT}))
+    report = policy_placement.main(["--params", str(params), "--data-root", str(data_root), "--tag", "test",
+                                    "--out-dir", str(tmp_path / "reports")])
+    rows = {r["schedule"]: r for r in report["rows"]}
+    assert list(rows) == ["one_after_another", "side_by_side"] and rows["one_after_another"]["speedup"] == 1.0
+    losses = {name: [a["final_loss"] for a in r["arms"].values()] for name, r in rows.items()}
+    assert losses["side_by_side"] == pytest.approx(losses["one_after_another"], rel=1e-4)  # placement only
+    assert rows["side_by_side"]["speedup"] == pytest.approx(rows["one_after_another"]["wall_s"]
+                                                            / rows["side_by_side"]["wall_s"])
+    assert json.loads((tmp_path / "reports" / "policy_placement_test.json").read_text())["rows"] == report["rows"]
+    assert "| side_by_side |" in (tmp_path / "reports" / "policy_placement_test.md").read_text()
+    with pytest.raises(SystemExit, match="unknown schedule"):
+        policy_placement.main(["--params", str(params), "--schedules", "all_at_once"])

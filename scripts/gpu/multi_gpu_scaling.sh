@@ -3,13 +3,16 @@
 # benchmarks/generate_scaling.py) on a bare multi-GPU machine, as device calls of at most 10 minutes:
 #   bash scripts/gpu/multi_gpu_scaling.sh start     the packed wheels (/tmp/gpu/part-*) and Newton's kernel cache
 #                                                   unpacked, then in the background: fresh lift_handle data (Newton at
-#                                                   20 VBD iterations, validated), train_scaling on it, generate_scaling
+#                                                   20 VBD iterations, validated), train_scaling on it, generate_scaling,
+#                                                   policy_placement (ACT on the carried data/lerobot datasets)
 #   bash scripts/gpu/multi_gpu_scaling.sh wait [S]  wait up to S seconds (default 540); progress and reports to $OUT
+#   bash scripts/gpu/multi_gpu_scaling.sh logs      the job's logs to $OUT
 #   bash scripts/gpu/multi_gpu_scaling.sh stop      end the background job
 # The job writes its reports to $R/reports (a device call's $OUT is emptied at the next call); `wait` copies them.
 # Settings: TRAIN_PROCS (K for training, default 1,2,4 up to the GPUs), SAMPLES (training samples per K, 19200),
 # GEN_DEVICES (K for simulate and expand, default 1,2), GEN_EPISODES (episodes per stage and K, 128: 4 batches of 32
-# worlds), NAME (report tag, default e.g. h200x4). NCCL's NVLink multicast stays off (benchmarks/train_scaling.py).
+# worlds), POLICY_STEPS (ACT steps per arm, 300), NAME (report tag, default e.g. h200x4). NCCL's NVLink multicast
+# stays off (benchmarks/train_scaling.py).
 cd "$(dirname "$0")/../.."
 source scripts/gpu/hold_lib.sh
 GPUS=$(nvidia-smi -L | wc -l)
@@ -37,16 +40,22 @@ job() {
     --episodes ${GEN_EPISODES:-128} --store $R/store.zarr --model models/pretrained/worldcontact-lift-handle \
     --tag $NAME --out-dir $R/reports > $R/generate_scaling.log 2>&1
   step "generate_scaling rc=$? $(tail -c 600 $R/generate_scaling.log | tr '\r\n' '  ')"
+  python3 -m benchmarks.policy_placement --params params.yaml --policy params/policy_act_gpu.yaml \
+    --set policy.steps=${POLICY_STEPS:-300} --set policy.decay_steps=${POLICY_STEPS:-300} --data-root $R/lerobot \
+    --tag $NAME --out-dir $R/reports > $R/policy_placement.log 2>&1
+  step "policy_placement rc=$? $(tail -c 600 $R/policy_placement.log | tr '\r\n' '  ')"
 }
 case "$1" in
   start)
-    unpack_wheels "import warp, newton, zarr, torch; print(torch.cuda.device_count(), 'GPUs')"
+    unpack_wheels "import warp, newton, zarr, torch, lerobot; print(torch.cuda.device_count(), 'GPUs')"
+    cp -a data/lerobot $R/lerobot || exit 1
     echo "cd $PWD && bash scripts/gpu/multi_gpu_scaling.sh job" > $R/job.sh
     background $R/job.sh
     sleep ${FIRST_WAIT:-60}; cat $R/steps.log ;;
   job) job ;;
-  wait) wait_bg "${2:-540}" $R/simulate.json $R/validate.json
-    cp $R/*.log $R/reports/* "$OUT"/ 2>/dev/null; ls "$OUT" ;;
+  wait) wait_bg "${2:-540}"
+    cp $R/steps.log $R/reports/* "$OUT"/ 2>/dev/null; ls "$OUT" ;;
+  logs) cp $R/*.log $R/simulate.json $R/validate.json "$OUT"/; ls "$OUT" ;;
   stop) kill -- -"$(cat $R/bg.pid)" ;;
-  *) echo "usage: $0 start | wait [SECONDS] | stop" >&2; exit 2 ;;
+  *) echo "usage: $0 start | wait [SECONDS] | logs | stop" >&2; exit 2 ;;
 esac
