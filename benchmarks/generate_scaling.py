@@ -12,7 +12,8 @@ sim.worlds are proposed at once; `agent.executor: processes` on K device process
 flight for every K) and the expand stage (--episodes generated episodes wanted from --store's accepted episodes of
 expand.task with --model, expand.shards = max(K), placed on K device processes). Both do the same work for every K
 (the stores depend on batches_in_flight and shards, not on K), so speedup = episodes/min(K) / episodes/min(1) of the
-same stage, measured in this run. Wall times include starting the device processes (warp kernels from the cache).
+same stage, measured in this run; --repeat-first runs the first K twice, a control for the store comparison (the
+stages' own run-to-run repeatability). Wall times include starting the device processes (warp kernels from the cache).
 Without GPUs the K processes run on the CPU: the same code path, a smoke check, not a speed.
 """
 
@@ -79,8 +80,11 @@ def store_agreement(a: Path, b: Path) -> dict[str, Any]:
 
 
 def with_speedups(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """Each row with its speedup: episodes/min over that of the same stage on 1 device (None: no such row)."""
-    base = {r["stage"]: r["episodes_per_min"] for r in rows if r["gpus"] == 1}
+    """Each row with its speedup: episodes/min over that of the same stage's first run on 1 device (None: none)."""
+    base: dict[str, float] = {}
+    for r in rows:
+        if r["gpus"] == 1:
+            base.setdefault(r["stage"], r["episodes_per_min"])
     return [{**r, "speedup": r["episodes_per_min"] / base[r["stage"]] if base.get(r["stage"]) else None}
             for r in rows]
 
@@ -99,7 +103,8 @@ def markdown(report: dict[str, Any]) -> str:
         same = r.get("same_as_first")
         agree = ("-" if same is None else f"{same['identical_episodes']}/{same['episodes']} identical, verdicts "
                  f"{'equal' if same['same_verdicts'] else 'differ'}, max {same['max_position_diff_m']} m")
-        lines.append(f"| {r['gpus']} | {r['stage']} | {r['episodes']} | {r['accepted']} | {r['wall_s']:.1f} | "
+        gpus = f"{r['gpus']} (repeat)" if r.get("repeat") else r["gpus"]
+        lines.append(f"| {gpus} | {r['stage']} | {r['episodes']} | {r['accepted']} | {r['wall_s']:.1f} | "
                      f"{r['episodes_per_min']:.2f} | {speedup} | {agree} |")
     return "\n".join(lines) + "\n"
 
@@ -116,6 +121,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--episodes", type=int, default=16, help="episodes simulated (simulate), accepted generated "
                                                                  "episodes wanted (expand)")
     parser.add_argument("--in-flight", type=int, default=2, help="batches in flight per device at the largest K")
+    parser.add_argument("--repeat-first", action="store_true",
+                        help="run the first K twice: the second run's stores against the first show whether the "
+                             "stages repeat themselves (on CUDA: see WC_DETERMINISTIC, wc/determinism.py)")
     parser.add_argument("--tag", default="cpu")
     parser.add_argument("--out-dir", default="reports/gpu")
     args = parser.parse_args(argv)
@@ -134,15 +142,19 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     if gpus:
         report["environment"]["gpu"] = f"{gpus} x {environment_info('cuda:0').get('gpu')}"
     out = Path(args.out_dir) / f"generate_scaling_{args.tag}.json"
-    for k in ks:
-        params, d = stage_params(args, k, ks), work / f"k{k}"
+    runs = [(k, False) for k in ks]
+    if args.repeat_first:
+        runs.insert(1, (ks[0], True))
+    for k, repeat in runs:
+        params, d = stage_params(args, k, ks), work / (f"k{k}_repeat" if repeat else f"k{k}")
         rows = [timed_row(k, "simulate", lambda: simulate_stage.run(params, d / "raw.zarr", d / "simulate.json",
                                                                       memory=None)),
                 timed_row(k, "expand", lambda: expand(params, args.model, args.store, d / "expanded.zarr",
                                                       d / "expand.json"))]
-        if k != ks[0]:  # the same work placed on other devices: the same stores?
+        if repeat or k != ks[0]:  # the same work again, or placed on other devices: the same stores?
             for row, name in zip(rows, ("raw.zarr", "expanded.zarr")):
                 row["same_as_first"] = store_agreement(work / f"k{ks[0]}" / name, d / name)
+                row["repeat"] = repeat
         report["rows"] = with_speedups(report["rows"] + rows)
         write_json_atomic(out, report)
         out.with_suffix(".md").write_text(markdown(report))

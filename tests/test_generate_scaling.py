@@ -25,6 +25,8 @@ def test_speedups_are_against_one_device_of_the_same_stage():
                                                                         "episodes_per_min": 19.0}]
     assert [r["speedup"] for r in bench.with_speedups(rows)] == [1.0, 1.0, 1.5, 1.9]
     assert bench.with_speedups([{"gpus": 2, "stage": "expand", "episodes_per_min": 1.0}])[0]["speedup"] is None
+    repeat = {"gpus": 1, "stage": "expand", "episodes_per_min": 5.0, "repeat": True}  # a control, not the base
+    assert [r["speedup"] for r in bench.with_speedups([*rows, repeat])] == [1.0, 1.0, 1.5, 1.9, 0.5]
 
 
 def test_every_k_does_the_same_work(tmp_path):
@@ -48,8 +50,12 @@ def test_a_cpu_smoke_run_writes_rows_for_both_stages(tmp_path):
     file.write_text(yaml.safe_dump({k: v for k, v in params.items() if not k.startswith("_")}))
     report = bench.main(["--params", str(file), "--devices", "1,2", "--episodes", "1", "--task", "bag_drop",
                          "--store", str(store), "--model", str(model), "--out-dir", str(tmp_path / "out"),
-                         "--tag", "smoke", "--set", "tasks.bag_drop.duration_s=0.2", "--set", "sim.settle_s=0.1"])
-    rows = report["rows"]
+                         "--tag", "smoke", "--set", "tasks.bag_drop.duration_s=0.2", "--set", "sim.settle_s=0.1",
+                         "--repeat-first"])
+    repeats, rows = report["rows"][2:4], report["rows"][:2] + report["rows"][4:]
+    assert [(r["gpus"], r["stage"], r["repeat"]) for r in repeats] == [(1, "simulate", True), (1, "expand", True)]
+    assert all(r["same_as_first"]["identical_episodes"] == r["same_as_first"]["episodes"] >= 1 for r in repeats)
+    assert "| 1 (repeat) | simulate |" in (tmp_path / "out" / "generate_scaling_smoke.md").read_text()
     assert [(r["gpus"], r["stage"]) for r in rows] == [(1, "simulate"), (1, "expand"), (2, "simulate"), (2, "expand")]
     assert all(r["wall_s"] > 0 and r["episodes"] >= 1 for r in rows)
     assert [r["executor"]["devices"] for r in rows if r["stage"] == "expand"] == [["cpu"], ["cpu", "cpu"]]

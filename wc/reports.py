@@ -26,6 +26,8 @@ def environment_info(device: str) -> dict[str, str]:
     import torch
     import warp
 
+    from wc.determinism import active_mode
+
     try:
         import newton
         newton_version = newton.__version__
@@ -34,6 +36,7 @@ def environment_info(device: str) -> dict[str, str]:
     info = {"device": device, "python": platform.python_version(), "torch": torch.__version__,
             "warp": warp.__version__, "newton": newton_version, "cpu": platform.processor() or platform.machine(),
             "cpu_count": str(os.cpu_count())}
+    info["deterministic"] = active_mode()  # warp's atomics ordering (WC_DETERMINISTIC)
     if device.startswith("cuda"):
         info["gpu"] = warp.get_device(device).name
     return info

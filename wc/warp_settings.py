@@ -5,10 +5,14 @@ that defines warp kernels, since a kernel module takes its options when it is de
   adjoints of Newton's kernels doubled the cold CPU compile (a lift_handle episode: 224 s of compilation with them,
   115 s without; the episodes are identical, docs/measurements.md).
 - Quiet module loads; warnings still shown.
+- Deterministic atomics when WC_DETERMINISTIC asks for them (wc.determinism).
 """
 
 import warp as wp
 
+from wc import determinism
+
 wp.config.enable_backward = False
 wp.config.quiet = True
 wp.config.log_level = wp.LOG_WARNING
+determinism.apply(determinism.requested_mode())

@@ -11,8 +11,10 @@
 # The job writes its reports to $R/reports (a device call's $OUT is emptied at the next call); `wait` copies them.
 # Settings: TRAIN_PROCS (K for training, default 1,2,4 up to the GPUs), SAMPLES (training samples per K, 19200),
 # GEN_DEVICES (K for simulate and expand, default 1,2), GEN_EPISODES (episodes per stage and K, 128: 4 batches of 32
-# worlds), POLICY_STEPS (ACT steps per arm, 300), NAME (report tag, default e.g. h200x4). NCCL's NVLink multicast
-# stays off (benchmarks/train_scaling.py).
+# worlds), REPEAT_FIRST (non-empty: generate at the first K twice, the stages' own repeatability as a control),
+# POLICY_STEPS (ACT steps per arm, 300), NAME (report tag, default e.g. h200x4). NCCL's NVLink multicast stays off
+# (benchmarks/train_scaling.py). WC_DETERMINISTIC=run_to_run before `start`: fixed-order atomics in every process
+# (wc/determinism.py); its kernels are not in the precompiled cache (expect minutes of compilation first).
 cd "$(dirname "$0")/../.."
 source scripts/gpu/hold_lib.sh
 GPUS=$(nvidia-smi -L | wc -l)
@@ -38,7 +40,7 @@ job() {
   python3 -m benchmarks.generate_scaling --params params.yaml "${SIM[@]}" --set sim.worlds=32 --set expand.device=cuda \
     --set expand.batch_size=128 --set expand.slots.planner_workers=6 --devices ${GEN_DEVICES:-1,2} \
     --episodes ${GEN_EPISODES:-128} --store $R/store.zarr --model models/pretrained/worldcontact-lift-handle \
-    --tag $NAME --out-dir $R/reports > $R/generate_scaling.log 2>&1
+    ${REPEAT_FIRST:+--repeat-first} --tag $NAME --out-dir $R/reports > $R/generate_scaling.log 2>&1
   step "generate_scaling rc=$? $(tail -c 600 $R/generate_scaling.log | tr '\r\n' '  ')"
   python3 -m benchmarks.policy_placement --params params.yaml --policy params/policy_act_gpu.yaml \
     --set policy.steps=${POLICY_STEPS:-300} --set policy.decay_steps=${POLICY_STEPS:-300} --data-root $R/lerobot \
