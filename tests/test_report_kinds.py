@@ -84,3 +84,13 @@ def test_data_generation_scaling_has_a_headline_per_stage_and_gpu_count() -> Non
     without = {**report, "rows": [{k: v for k, v in rows[0].items() if k != "speedup"}]}
     with pytest.raises(HeadlineError, match="speedup"):
         kind_of("generate_scaling_h200x2.json").headline(without, "generate_scaling_h200x2.json")
+
+
+def test_policy_schedules_are_not_read_as_a_policy_evaluation() -> None:
+    rows = [{"schedule": "one_after_another", "wall_s": 128.3, "speedup": 1.0},
+            {"schedule": "side_by_side", "wall_s": 86.2, "speedup": 1.49}]
+    report = {"rows": rows, "policy_type": "act", "environment": {"gpu": "2 x NVIDIA H200"}}
+    kind = kind_of("policy_placement_h200x2.json")
+    assert kind.name == "policy training schedules" and kind_of("policy_h100_x.json").name == "policy evaluation"
+    assert kind.headline(report, "policy_placement_h200x2.json").endswith(
+        "one after another 128 s (1x); side by side 86.2 s (1.5x)")

@@ -242,12 +242,21 @@ def _generate_scaling(v: dict[str, Any]) -> str:
     return f"data generation across GPUs, {v['environment.gpu']}: {rows}"
 
 
+def _policy_placement(v: dict[str, Any]) -> str:
+    rows = "; ".join(f"{name.replace('_', ' ')} {_g(wall)} s ({_g(speedup, 2)}x)" for name, wall, speedup in zip(
+        *(v[f"rows.*.{f}"].values() for f in ("schedule", "wall_s", "speedup"))))
+    return f"{v['policy_type']} policy arms' training schedules, {v['environment.gpu']}: {rows}"
+
+
 _POLICY = ("policy_type", "task", "lift_height_m", "hold_s")
 KINDS: tuple[ReportKind, ...] = (
     ReportKind("policy comparison", ("policy_*_arms.json",),
                ("arms.*.successes", "arms.*.trials", "arms.*.episodes", *_POLICY,
                 "data_production.worldcontact.model_params_hash", "environment.gpu"),
                _policy_comparison),
+    ReportKind("policy training schedules", ("policy_placement_*.json",),
+               ("rows.*.schedule", "rows.*.wall_s", "rows.*.speedup", "policy_type", "environment.gpu"),
+               _policy_placement),
     ReportKind("policy evaluation", ("policy_*.json",),
                ("policies.*.successes", "policies.*.trials", *_POLICY),
                lambda v: _policy_arms(v, "policies")),
