@@ -57,7 +57,9 @@ def timed_row(k: int, stage: str, run: Any) -> dict[str, Any]:
     wall = time.perf_counter() - started
     episodes = report["episodes"] if stage == "simulate" else report["generated"]
     return {"gpus": k, "stage": stage, "episodes": episodes, "accepted": report["accepted"], "wall_s": wall,
-            "episodes_per_min": 60.0 * episodes / wall, "executor": report["executor"]}
+            "episodes_per_min": 60.0 * episodes / wall, "executor": report["executor"],
+            "stage_wall_s": report.get("wall_s"),  # wall_s less this: imports and the stage's set-up in this process
+            "shards": [{k: s.get(k) for k in ("shard", "gpu", "wall_s", "timing")} for s in report.get("shards", [])]}
 
 
 def store_agreement(a: Path, b: Path) -> dict[str, Any]:

@@ -57,7 +57,9 @@ def test_a_cpu_smoke_run_writes_rows_for_both_stages(tmp_path):
     assert all(r["same_as_first"]["identical_episodes"] == r["same_as_first"]["episodes"] >= 1 for r in repeats)
     assert "| 1 (repeat) | simulate |" in (tmp_path / "out" / "generate_scaling_smoke.md").read_text()
     assert [(r["gpus"], r["stage"]) for r in rows] == [(1, "simulate"), (1, "expand"), (2, "simulate"), (2, "expand")]
-    assert all(r["wall_s"] > 0 and r["episodes"] >= 1 for r in rows)
+    assert all(r["wall_s"] >= r["stage_wall_s"] > 0 and r["episodes"] >= 1 for r in rows)
+    for row in (r for r in rows if r["stage"] == "expand"):  # each shard's own time, inside the stage's
+        assert len(row["shards"]) == 2 and all(0 < s["wall_s"] <= row["stage_wall_s"] for s in row["shards"])
     assert [r["executor"]["devices"] for r in rows if r["stage"] == "expand"] == [["cpu"], ["cpu", "cpu"]]
     assert rows[0]["speedup"] == 1.0 and rows[2]["speedup"] > 0
     for row in rows[2:]:  # the same work on two CPU processes: the same stores as on one
