@@ -208,6 +208,13 @@ def test_proposals_cover_the_expected_rejections_and_episodes_past_the_target_ar
     e._file()
     assert e.surplus == 1 and e.filed == 5 and not written and not e.infeasible
     assert e.unused == 1 + e.proposed - e.filed
+    params["expand"]["slots"]["expected_acceptance"] = 0.8  # a prior: the first wave covers its rejections too
+    e = SlotExpansion(None, None, [], load_section(params, "expand", ExpandConfig), None, 0.04, 4, None, None,
+                      time.perf_counter(), lambda *a: None)
+    assert proposals_allowed() == 5  # 4 / 0.8
+    params["expand"]["slots"]["expected_acceptance"] = 0.0
+    with pytest.raises(ValueError, match="expected_acceptance must be in"):
+        load_section(params, "expand", ExpandConfig)
 
 
 @pytest.mark.slow

@@ -17,6 +17,8 @@ class SlotConfig:
 
     sync_every: int = 8  # frames between the host's reads of the slots' first failures (one sync each)
     plans_ahead: int = 0  # episodes proposed and not yet filed at most (0: twice batch_size)
+    expected_acceptance: float = 1.0  # acceptance assumed before the first verdict: the first wave proposes the wanted
+    # episodes / this, so the replacements of its rejections need no wave of their own (1.0: exactly the wanted)
     planner_workers: int = 0  # planning processes beside the rollouts (0: in the stage's process)
     bf16: bool = True  # the network in bf16 autocast (CUDA; the state stays fp32)
     cuda_graph: bool = True  # each part of a frame captured as a CUDA graph (CUDA)
@@ -38,6 +40,8 @@ class SlotConfig:
         for name in ("plans_ahead", "planner_workers", "final_edge_passes", "bounded_rounds", "rollback_rounds"):
             if getattr(self, name) < 0:
                 raise ValueError(f"slots.{name} must be >= 0, got {getattr(self, name)}")
+        if not 0.0 < self.expected_acceptance <= 1.0:
+            raise ValueError(f"slots.expected_acceptance must be in (0, 1], got {self.expected_acceptance}")
 
 
 @dataclass(frozen=True)

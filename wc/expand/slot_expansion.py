@@ -106,12 +106,13 @@ class SlotExpansion:
 
     # -- proposals and planning --
     def _may_propose(self) -> bool:
-        """While the episodes in flight, at the acceptance rate filed so far, are not expected to reach the target (so
-        the last slots fill with enough episodes to cover its rejections instead of waiting for them one wave at a
-        time), within max_attempts, plans_ahead and max_minutes."""
+        """While the episodes in flight, at the acceptance rate filed so far (before any: slots.expected_acceptance),
+        are not expected to reach the target (so the last slots fill with enough episodes to cover its rejections
+        instead of waiting for them one wave at a time), within max_attempts, plans_ahead and max_minutes."""
         cfg = self.cfg
         in_flight = self.proposed - self.filed
-        rate = max(self.accepted / self.generated, MIN_EXPECTED_ACCEPTANCE) if self.generated else 1.0
+        rate = (max(self.accepted / self.generated, MIN_EXPECTED_ACCEPTANCE) if self.generated
+                else cfg.slots.expected_acceptance)
         return (self.accepted + rate * in_flight < self.wanted and self.proposed < cfg.max_attempts
                 and in_flight < self.ahead
                 and not (cfg.max_minutes > 0 and time.perf_counter() - self.started > 60.0 * cfg.max_minutes))
