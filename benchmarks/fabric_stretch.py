@@ -177,6 +177,20 @@ def markdown(report: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def tick_label(setting: str, width: int = 22) -> str:
+    """A setting as an axis label: one override per line, each key by its last two parts (sim.bag.tri_ke=1e4 ->
+    bag.tri_ke=1e4); an override longer than `width` characters puts its value on a line of its own."""
+    head = setting.split(" (")[0]
+    lines = []
+    for override in parse_setting(head) if "=" in head else [head]:
+        key, _, value = override.partition("=")
+        short = ".".join(key.split(".")[-2:])
+        lines.append(override if not value else f"{short}={value}" if len(short) + len(value) < width
+                     else f"{short}\n={value}")
+    note = setting[len(head):].strip()
+    return "\n".join(lines + ([note] if note else []))
+
+
 def chart(report: dict[str, Any], path: Path) -> None:
     """Per setting, p99 and worst-edge strain over the lifted frames (all edges and the handles; all frames faint),
     the targets as horizontal lines, the accepted share written above each setting."""
@@ -210,7 +224,7 @@ def chart(report: dict[str, Any], path: Path) -> None:
     ax.set_ylim(bottom, top * 2.0)
     ax.set_yticks([t for t in (0, 5, 10, 15, 20, 50, *(10.0 ** np.arange(2, 9))) if bottom <= t <= top * 2.0])
     ax.yaxis.set_major_formatter(lambda v, _: f"{v:g}")
-    ax.set_xticks(at, [r["setting"].replace(",", ",\n") for r in rows], fontsize=7)
+    ax.set_xticks(at, [tick_label(r["setting"]) for r in rows], fontsize=7)
     ax.set_xlim(-0.5, len(rows) - 0.5)
     ax.set_ylabel("edge strain [%]")
     ax.grid(alpha=0.3)

@@ -86,6 +86,13 @@ def test_a_setting_splits_at_the_commas_that_start_a_key():
         fabric_stretch.parse_setting("1e4")
 
 
+def test_a_setting_labels_its_chart_column_one_override_per_line():
+    setting = "sim.bag.tri_ke=1e4,scene.robot.left_base_xyz_yaw_deg=[-0.75, 0.0] (plans of seed 1)"
+    label = fabric_stretch.tick_label(setting)
+    assert label.splitlines() == ["bag.tri_ke=1e4", "robot.left_base_xyz_yaw_deg", "=[-0.75, 0.0]", "(plans of seed 1)"]
+    assert fabric_stretch.tick_label("params as given") == "params as given"
+
+
 @pytest.mark.slow
 def test_one_lift_handle_plan_is_measured(tmp_path):
     out = tmp_path / "fs.json"
