@@ -35,7 +35,7 @@ from wc.data.store import TrajectoryStore
 from wc.devices import resolve_warp_device
 from wc.expand.stage import expand
 from wc.expand.teacher import teacher_check
-from wc.reports import environment_info, write_json_atomic
+from wc.reports import environment_info, write_json_atomic, write_report_atomic
 from wc.scene.config import SceneConfig
 from wc.seeds import episode_seed
 from wc.sim.config import SimConfig
@@ -168,8 +168,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "teacher_plans": teacher["plans"],
         "teacher_rms_mm": 1e3 * teacher["mean_rms_error_m"] if teacher["mean_rms_error_m"] is not None else None})
     report["finished"] = time.strftime("%Y-%m-%dT%H:%M:%S%z")
-    write_json_atomic(out, report)
-    out.with_suffix(".md").write_text(markdown(report))
+    write_report_atomic(out, report, markdown(report))
     chart(report, out.with_suffix(".png"))
     return report
 

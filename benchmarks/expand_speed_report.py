@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from wc.reports import pyplot, save_figure_atomic
+from wc.reports import pyplot, save_figure_atomic, write_report_atomic
 
 
 def _f(value: Any, fmt: str = ".1f") -> str:
@@ -103,8 +103,6 @@ def main(argv: list[str] | None = None) -> None:
     import argparse  # noqa: PLC0415
     import json  # noqa: PLC0415
 
-    from wc.reports import write_json_atomic  # noqa: PLC0415
-
     parser = argparse.ArgumentParser(description=main.__doc__)
     parser.add_argument("--run", nargs=3, action="append", metavar=("LABEL", "BENCH", "EXPAND"), required=True)
     parser.add_argument("--out", required=True)
@@ -112,8 +110,7 @@ def main(argv: list[str] | None = None) -> None:
     report = combined([(label, json.loads(Path(b).read_text()), json.loads(Path(e).read_text()))
                        for label, b, e in args.run])
     out = Path(args.out)
-    write_json_atomic(out, report)
-    out.with_suffix(".md").write_text(markdown(report))
+    write_report_atomic(out, report, markdown(report))
     chart(report, out.with_suffix(".png"))
 
 

@@ -35,7 +35,7 @@ from wc.agent.replay import plan_specs, replay, share
 from wc.agent.runner import TaskWorld, build_task_world
 from wc.config import add_params_arguments, load_section, read_params
 from wc.devices import resolve_warp_device
-from wc.reports import environment_info, pyplot, save_figure_atomic, write_json_atomic
+from wc.reports import environment_info, pyplot, save_figure_atomic, write_report_atomic
 from wc.scene.config import SceneConfig
 from wc.sim.config import SimConfig
 from wc.tasks.bag_geometry import lowest_height
@@ -272,8 +272,7 @@ def main(argv: list[str] | None = None) -> None:
         print(f"{row['setting']}: accepted {row['accepted']}, verdicts {row['verdicts']}, lifted p99 "
               f"{_pct(lifted.get('p99'))} %, max {_pct(lifted.get('max'))} %; "
               f"{row.get('rollout_s_per_episode', float('nan')):.1f} s per episode", flush=True)
-        write_json_atomic(out, report)
-        out.with_suffix(".md").write_text(markdown(report))
+        write_report_atomic(out, report, markdown(report))
         chart(report, out.with_suffix(".png"))
     print(markdown(report))
 

@@ -33,7 +33,7 @@ from wc.data.store import TrajectoryStore
 from wc.distributed.processes import visible_gpus
 from wc.expand import ExpandConfig, expand
 from wc.paths import EXPAND
-from wc.reports import environment_info, write_json_atomic
+from wc.reports import host_environment, write_report_atomic
 
 
 def stage_params(args: argparse.Namespace, k: int, ks: list[int]) -> dict[str, Any]:
@@ -139,10 +139,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     first = stage_params(args, 1, ks)
     report: dict[str, Any] = {"tag": args.tag, "device": device, "task": args.task, "episodes": args.episodes,
                               "expand_task": first["expand"]["task"], "shards": max(ks), "store": args.store,
-                              "model": args.model, "overrides": args.overrides, "environment": environment_info(device),
+                              "model": args.model, "overrides": args.overrides, "environment": host_environment(device, gpus),
                               "rows": []}
-    if gpus:
-        report["environment"]["gpu"] = f"{gpus} x {environment_info('cuda:0').get('gpu')}"
     out = Path(args.out_dir) / f"generate_scaling_{args.tag}.json"
     runs = [(k, False) for k in ks]
     if args.repeat_first:
@@ -158,8 +156,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                 row["same_as_first"] = store_agreement(work / f"k{ks[0]}" / name, d / name)
                 row["repeat"] = repeat
         report["rows"] = with_speedups(report["rows"] + rows)
-        write_json_atomic(out, report)
-        out.with_suffix(".md").write_text(markdown(report))
+        write_report_atomic(out, report, markdown(report))
         print(markdown(report), flush=True)
     return report
 

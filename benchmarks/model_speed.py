@@ -44,7 +44,7 @@ from wc.model.prescribed_inputs import RecordedInputs
 from wc.model.layout import SceneLayout, scene_layout
 from wc.model.rollout import rollout
 from wc.model.worldcontact import WorldContact
-from wc.reports import environment_info, write_json_atomic
+from wc.reports import environment_info, write_json_atomic, write_report_atomic
 from wc.scene.config import SceneConfig
 from wc.scene.scene import build_scene
 from wc.sim.config import SimConfig
@@ -258,8 +258,7 @@ def main(argv: list[str] | None = None) -> None:
                 report["rollout_protocol"].append(time_protocol_rollout(store, mc, cfg, args.rollout_frames, batch, device))
                 print(report["rollout_protocol"][-1], flush=True)
                 write_json_atomic(out, report)
-    write_json_atomic(out, report)
-    out.with_suffix(".md").write_text(markdown(report))
+    write_report_atomic(out, report, markdown(report))
     print(markdown(report))
 
 

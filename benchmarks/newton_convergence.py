@@ -28,7 +28,7 @@ from wc.agent.replay import plan_specs, replay, same_verdict, self_agreement, sh
 from wc.agent.runner import build_task_world
 from wc.devices import resolve_warp_device
 from wc.config import add_params_arguments, load_section, read_params
-from wc.reports import environment_info, pyplot, save_figure_atomic, write_json_atomic
+from wc.reports import environment_info, pyplot, save_figure_atomic, write_report_atomic
 from wc.scene.config import SceneConfig
 from wc.seeds import episode_seed
 from wc.sim.config import SimConfig
@@ -181,8 +181,7 @@ def main(argv: list[str] | None = None) -> None:
         print(f"{iterations} iterations: " + ", ".join(
             f"agreement {a['agreement']:.2f} at {a['perturb_m']:g} m ({a['mean_rms_to_first_m'] * 1e3:.1f} mm)"
             for a in row["self_agreement"]) + f"; {row['rollout_s_per_episode']:.2f} s per episode", flush=True)
-        write_json_atomic(out, report)
-        out.with_suffix(".md").write_text(markdown(report))
+        write_report_atomic(out, report, markdown(report))
         chart(report, out.with_suffix(".png"))
     print(markdown(report))
 

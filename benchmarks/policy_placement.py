@@ -22,7 +22,7 @@ from typing import Any
 from wc.distributed.processes import visible_gpus
 from wc.paths import FINETUNE
 from wc.policy.finetune_stage import run, stage_params
-from wc.reports import environment_info, write_json_atomic
+from wc.reports import host_environment, write_report_atomic
 
 SCHEDULES = {"one_after_another": False, "side_by_side": True}
 
@@ -80,15 +80,12 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "tag": args.tag, "device": device, "gpus": len(visible_gpus()), "policy_type": policy["type"],
         "datasets": list(policy["datasets"]), "steps": policy["steps"], "batch_size": policy["batch_size"],
         "seed": policy["seed"], "data_root": args.data_root, "overrides": args.overrides,
-        "environment": environment_info(device), "rows": []}
-    if device == "cuda":
-        report["environment"]["gpu"] = f"{report['gpus']} x {environment_info('cuda:0').get('gpu')}"
+        "environment": host_environment(device, len(visible_gpus()) if device == "cuda" else 0), "rows": []}
     out = Path(args.out_dir) / f"policy_placement_{args.tag}.json"
     work = Path(tempfile.mkdtemp(prefix="policy_placement_"))
     for name in names:
         report["rows"] = with_speedups(report["rows"] + [schedule_row(name, params, Path(args.data_root), work)])
-        write_json_atomic(out, report)
-        out.with_suffix(".md").write_text(markdown(report))
+        write_report_atomic(out, report, markdown(report))
         print(markdown(report), flush=True)
     return report
 

@@ -31,7 +31,7 @@ from wc.config import add_params_arguments, load_section, read_params
 from wc.data.store import TrajectoryStore
 from wc.model.config import ModelConfig
 from wc.model.rollout import rollout
-from wc.reports import environment_info, write_json_atomic
+from wc.reports import environment_info, write_report_atomic
 from wc.train.data import data_scales, episode_phases, read_phase_window
 from wc.model.layout import scene_layout
 from wc.model.worldcontact import WorldContact
@@ -154,8 +154,7 @@ def main(argv: list[str] | None = None) -> None:
         report["runs"].append(profile(store, model_cfg, args.frames, args.batch, autocast, device))
         print(report["runs"][-1], flush=True)
     out = Path(args.out)
-    write_json_atomic(out, report)
-    out.with_suffix(".md").write_text(markdown(report))
+    write_report_atomic(out, report, markdown(report))
     print(markdown(report))
 
 

@@ -32,7 +32,7 @@ from wc.agent.runner import episode_seed, pad_to_length
 from wc.config import add_params_arguments, load_section, read_params
 from wc.devices import resolve_warp_device
 from wc.dynamics import ObjectState
-from wc.reports import environment_info, write_json_atomic
+from wc.reports import environment_info, write_report_atomic
 from wc.scene.config import SceneConfig
 from wc.scene.scene import build_scene
 from wc.sim.config import SimConfig
@@ -180,8 +180,7 @@ def main(argv: list[str] | None = None) -> None:
         tqdm.write(f"{row['bag_vertices']:>6} vertices x {w} worlds: {row['solver_steps_per_s']:.1f} steps/s, "
                    f"{row['simulated_s_per_wall_s']:.3f} sim s/wall s per world, "
                    f"{row['simulated_s_per_wall_s_aggregate']:.3f} aggregate (walls {['%.2f' % s for s in row['wall_s']]})")
-        write_json_atomic(out, report)
-        out.with_suffix(".md").write_text(markdown(report))
+        write_report_atomic(out, report, markdown(report))
     print(markdown(report))
 
 

@@ -31,7 +31,7 @@ from typing import Any
 import torch
 
 from wc.config import load_section, read_params
-from wc.reports import environment_info, write_json_atomic
+from wc.reports import host_environment, write_report_atomic
 from wc.train.config import Schedule, TrainConfig
 
 MULTICAST_OFF = {"NCCL_NVLS_ENABLE": "0", "TORCH_SYMM_MEM_DISABLE_MULTICAST": "1", "NVSHMEM_DISABLE_NVLS": "1"}
@@ -163,10 +163,8 @@ def main(argv: list[str] | None = None) -> None:
         raise SystemExit(f"train_scaling: asked for {max(ks)} processes, the machine has {gpus} GPUs")
     work = Path(tempfile.mkdtemp(prefix="train_scaling_"))
     report: dict[str, Any] = {"tag": args.tag, "device": device, "samples": args.samples, "batch": args.batch,
-                              "environment": environment_info(device), "multicast_off": MULTICAST_OFF, "rows": [],
+                              "environment": host_environment(device, gpus), "multicast_off": MULTICAST_OFF, "rows": [],
                               "cuda_graph": bool(gpus) and train_cfg.cuda_graph, "lr_scale": args.lr_scale}
-    if gpus:
-        report["environment"]["gpu"] = f"{gpus} x {torch.cuda.get_device_name(0)}"
     out = Path(args.out_dir) / f"train_scaling_{args.tag}.json"
     for k in ks:
         row = run_k(k, max(1, args.samples // (k * args.batch)), args, work, device, train_cfg.base)
@@ -174,8 +172,7 @@ def main(argv: list[str] | None = None) -> None:
         if "samples_per_s" in row and "samples_per_s" in base:
             row["efficiency"] = row["samples_per_s"] / (k * base["samples_per_s"])
         report["rows"].append(row)
-        write_json_atomic(out, report)
-        out.with_suffix(".md").write_text(markdown(report))
+        write_report_atomic(out, report, markdown(report))
         chart(report, out.with_suffix(".png"))
         print(markdown(report), flush=True)
 

@@ -41,7 +41,7 @@ from wc.model.config import ModelConfig
 from wc.model.rollout import rollout
 from wc.model.static_rollout import StaticRollout
 from wc.model.worldcontact import WorldContact
-from wc.reports import environment_info, write_json_atomic
+from wc.reports import environment_info, write_report_atomic
 from wc.train.capacity import data_capacities
 from wc.train.config import TrainConfig
 from wc.train.data import LayoutBatchSampler, data_scales, phases_of, read_phase_window, windows_of
@@ -322,8 +322,7 @@ def main(argv: list[str] | None = None) -> None:
             row["trace"] = traceback.format_exc()[-3000:]
         report["rows"].append(row)
         report["wall_s"] = time.perf_counter() - started
-        write_json_atomic(out, report)
-        out.with_suffix(".md").write_text(markdown(report))
+        write_report_atomic(out, report, markdown(report))
         print(markdown(report), flush=True)
 
 

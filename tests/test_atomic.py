@@ -13,7 +13,7 @@ import pytest
 
 from wc.atomic import remove_stale_temporaries, temporary_pattern
 from wc.data.store import TrajectoryStore, TrajectoryWriter
-from wc.reports import save_figure_atomic, write_json_atomic
+from wc.reports import host_environment, save_figure_atomic, write_json_atomic, write_report_atomic
 
 
 @pytest.fixture(scope="module")
@@ -64,6 +64,24 @@ def test_json_writer_removes_a_dead_writers_temporaries_only(tmp_path: Path, dea
     assert target.read_text() == '{\n  "a": 1\n}\n'
     assert not any(p.exists() for p in stale)
     assert all(p.exists() for p in kept)
+
+
+def test_a_benchmark_report_writes_its_table_beside_it_atomically(tmp_path: Path, dead_pid: int,
+                                                                   live_pid: int) -> None:
+    target = tmp_path / "speed_cpu.json"
+    stale, kept = _leftovers(target.with_suffix(".md"), dead_pid, live_pid)
+    assert write_report_atomic(target, {"a": 1}, "| a |\n") == target
+    assert target.read_text() == '{\n  "a": 1\n}\n' and target.with_suffix(".md").read_text() == "| a |\n"
+    assert not any(p.exists() for p in stale) and all(p.exists() for p in kept)
+
+
+def test_a_run_over_several_gpus_names_their_count_beside_the_model(monkeypatch: pytest.MonkeyPatch) -> None:
+    import wc.reports
+
+    monkeypatch.setattr(wc.reports, "environment_info", lambda device: {"device": device, "gpu": "NVIDIA H200"}
+                        if device.startswith("cuda") else {"device": device})
+    assert host_environment("cuda", 2) == {"device": "cuda", "gpu": "2 x NVIDIA H200"}
+    assert host_environment("cpu", 0) == {"device": "cpu"}
 
 
 def test_store_writer_removes_a_dead_writers_temporaries_only(tmp_path: Path, dead_pid: int, live_pid: int) -> None:

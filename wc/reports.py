@@ -21,6 +21,21 @@ def write_json_atomic(path: str | Path, data: dict[str, Any]) -> Path:
     return write_atomic(path, lambda tmp: tmp.write_text(text))
 
 
+def write_report_atomic(path: str | Path, data: dict[str, Any], table: str) -> Path:
+    """A benchmark's report: `data` as JSON at `path` and `table` (its markdown) beside it as `.md`, each atomically."""
+    path = write_json_atomic(path, data)
+    write_atomic(path.with_suffix(".md"), lambda tmp: tmp.write_text(table))
+    return path
+
+
+def host_environment(device: str, gpus: int) -> dict[str, str]:
+    """environment_info of a run spread over this host's `gpus` GPUs: `gpu` reads e.g. "2 x NVIDIA H200"."""
+    info = environment_info("cuda:0" if gpus else device)
+    if gpus:
+        info.update(device=device, gpu=f"{gpus} x {info['gpu']}")
+    return info
+
+
 def environment_info(device: str) -> dict[str, str]:
     """Device and library versions, recorded beside every timing."""
     import torch
