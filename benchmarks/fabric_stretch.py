@@ -118,7 +118,8 @@ def measure(params: dict[str, Any], task_name: str, specs: list[EpisodeSpec], se
     label = ",".join(setting) or "base"
     row: dict[str, Any] = {"setting": label, "overrides": setting, "iterations": sim_cfg.iterations,
                            "substeps": sim_cfg.substeps, "worlds": sim_cfg.worlds, "tri_ke": sim_cfg.bag.tri_ke,
-                           "tri_ka": sim_cfg.bag.tri_ka, "plans": len(plans), "unplannable": len(specs) - len(plans),
+                           "tri_ka": sim_cfg.bag.tri_ka, "bag_vertices": len(world.scene.objects["bag"].vertices),
+                           "plans": len(plans), "unplannable": len(specs) - len(plans),
                            "reset_s": reset_s}
     if not plans:
         return row | {"verdicts": {}, "accepted": None, "episodes": []}
@@ -156,20 +157,21 @@ def markdown(report: dict[str, Any]) -> str:
              "Strain = edge length / rest length - 1 [%], pooled over the (frame, edge) samples of every episode; "
              "lifted: frames whose lowest bag vertex is at least the task's success height above the table. "
              f"Targets over the lifted frames: p99 <= {p99_limit * 100:g} %, worst edge <= {max_limit * 100:g} %.", "",
-             "| setting | iterations | plans | accepted | verdicts | lifted frames | p50 / p90 / p99 / max lifted "
+             "| setting | bag vertices | iterations | plans | accepted | verdicts | lifted frames | p50 / p90 / p99 / max lifted "
              f"| > {p99_limit * 100:g} % lifted | handles p99 / max lifted | p99 / max all frames "
              "| worst edge per episode, median / max (lifted) | meets | rollout s per episode |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in report["settings"]:
         if not r["plans"]:
-            lines.append(f"| {r['setting']} | {r['iterations']} | 0 | - | - | - | - | - | - | - | - | - | - |")
+            lines.append(f"| {r['setting']} | {r.get('bag_vertices', '-')} | {r['iterations']} | 0 | - | - | - | - | - | - "
+                         "| - | - | - | - |")
             continue
         lifted, every = r["stretch"]["lifted"], r["stretch"]["all_frames"]
         a, h, w = lifted["all"] or {}, lifted.get("handles") or {}, r["worst_edge"]["lifted"]
         verdicts = ", ".join(f"{k} {n}" for k, n in sorted(r["verdicts"].items()))
         lifted_frames = sum(e["lifted_frames"] for e in r["episodes"])
         lines.append(
-            f"| {r['setting']} | {r['iterations']} | {r['plans']} | {r['accepted']:.2f} | {verdicts} | {lifted_frames} "
+            f"| {r['setting']} | {r.get('bag_vertices', '-')} | {r['iterations']} | {r['plans']} | {r['accepted']:.2f} | {verdicts} | {lifted_frames} "
             f"| {' / '.join(_pct(a.get(k)) for k in ('p50', 'p90', 'p99', 'max'))} "
             f"| {_pct(a.get('share_above_limit'))} | {_pct(h.get('p99'))} / {_pct(h.get('max'))} "
             f"| {_pct(every['all']['p99'])} / {_pct(every['all']['max'])} | {_pct(w['median'])} / {_pct(w['max'])} "
