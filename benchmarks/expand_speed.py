@@ -27,14 +27,14 @@ import time
 from pathlib import Path
 from typing import Any
 
-from benchmarks.expand_speed_report import chart, markdown
+from benchmarks.expand_speed_report import chart, markdown, speed_row
 from wc.agent.planner import CoveragePlanner
 from wc.agent.runner import EpisodeRecord, build_task_world, simulate_batch, simulator_store
 from wc.config import add_params_arguments, load_section, read_params
 from wc.data.store import TrajectoryStore
 from wc.devices import resolve_warp_device
 from wc.expand.stage import expand
-from wc.expand.teacher import teacher_check
+from wc.expand.teacher import expansion_weighted, teacher_check
 from wc.reports import environment_info, write_json_atomic, write_report_atomic
 from wc.scene.config import SceneConfig
 from wc.seeds import episode_seed
@@ -154,19 +154,14 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     write_json_atomic(out, report)
     teacher = teacher_check(params, work / "expanded.zarr", args.teacher_plans, work / "rejected.zarr")
     report["teacher"] = {k: teacher.get(k) for k in ("plans", "agreement", "precision", "recall", "newton_accepts",
-                                                      "constant_agreement", "mean_rms_error_m", "confusion", "wall_s")}
-    best = max(report["newton"], key=lambda r: r["accepted_per_min"])
+                                                      "constant_agreement", "mean_rms_error_m",
+                                                      "accepted_mean_rms_error_m", "confusion", "wall_s")}
+    report["teacher"]["expansion_weighted"] = expansion_weighted(teacher["confusion"], gen["accepted"],
+                                                                 gen["generated"] - gen["accepted"])
     src = TrajectoryStore(store)
     first = src.episodes_where(task=args.task, accepted=True)[0]
     vertices = int(src.read_window(first, 0, 1, ("x",))["x"].shape[1])  # the scene's object vertices, as simulated
-    report["rows"].append({
-        "vertices": vertices, "newton_worlds": best["worlds"],
-        "newton_accepted_per_min": best["accepted_per_min"],
-        "worldcontact_accepted_per_min": gen["accepted_per_min"],
-        "ratio": gen["accepted_per_min"] / best["accepted_per_min"] if best["accepted_per_min"] else None,
-        "acceptance": gen["acceptance_rate"], "teacher_agreement": teacher["agreement"],
-        "teacher_plans": teacher["plans"],
-        "teacher_rms_mm": 1e3 * teacher["mean_rms_error_m"] if teacher["mean_rms_error_m"] is not None else None})
+    report["rows"].append(speed_row(report["newton"], gen, report["teacher"]) | {"vertices": vertices})
     report["finished"] = time.strftime("%Y-%m-%dT%H:%M:%S%z")
     write_report_atomic(out, report, markdown(report))
     chart(report, out.with_suffix(".png"))

@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from wc.expand.teacher import expansion_weighted
 from wc.reports import pyplot, save_figure_atomic, write_report_atomic
 
 
@@ -19,11 +20,14 @@ def markdown(report: dict[str, Any]) -> str:
              f"{env.get('gpu', env.get('device'))}; torch {env.get('torch')}, warp {env.get('warp')}, newton "
              f"{env.get('newton')}. {report['what']}.", "",
              "| run | vertices | Newton accepted/min (worlds) | WorldContact accepted/min | ratio | acceptance | "
-             "teacher agreement (plans) | RMS to Newton mm |", "|---|---|---|---|---|---|---|---|"]
+             "teacher agreement: sampled plans (plans) / expansion-weighted | RMS to Newton mm: sampled / accepted "
+             "plans |", "|---|---|---|---|---|---|---|---|"]
     for r in report["rows"]:
         lines.append(f"| {r.get('run', '-')} | {r['vertices']} | {_f(r['newton_accepted_per_min'])} ({r['newton_worlds']}) | "
                      f"{_f(r['worldcontact_accepted_per_min'])} | {_f(r['ratio'], '.2f')} | {_f(r['acceptance'], '.2f')} "
-                     f"| {_f(r['teacher_agreement'], '.2f')} ({r['teacher_plans']}) | {_f(r['teacher_rms_mm'])} |")
+                     f"| {_f(r['teacher_agreement'], '.2f')} ({r['teacher_plans']}) / "
+                     f"{_f(r.get('teacher_agreement_expansion'), '.2f')} | {_f(r['teacher_rms_mm'])} / "
+                     f"{_f(r.get('teacher_rms_mm_accepted'))} |")
     lines += ["", "## Newton per worlds count (reset, settle, plan, simulate, checks; after a warm-up batch)", "",
               "| run | worlds | episodes | accepted | s | accepted/min | episodes/min | acceptance |",
               "|---|---|---|---|---|---|---|---|"]
@@ -74,24 +78,41 @@ def chart(report: dict[str, Any], path: Path) -> None:
     plt.close(fig)
 
 
+def _mm(metres: float | None) -> float | None:
+    return None if metres is None else 1e3 * metres
+
+
+def speed_row(newton: list[dict[str, Any]], expanded: dict[str, Any], teacher: dict[str, Any] | None
+              ) -> dict[str, Any]:
+    """One run's headline row: Newton's best worlds count of that run against its expansion, and the teacher check
+    (the sampled plans' figures, and the expansion-weighted agreement: wc.expand.teacher.expansion_weighted) where
+    it ran."""
+    best = max(newton, key=lambda r: r["accepted_per_min"])
+    teacher = teacher or {}
+    weighted = teacher.get("expansion_weighted")
+    if weighted is None and teacher.get("confusion"):
+        weighted = expansion_weighted(teacher["confusion"], expanded["accepted"],
+                                      expanded["generated"] - expanded["accepted"])
+    return {"vertices": expanded.get("vertices", 306), "newton_worlds": best["worlds"],
+            "newton_accepted_per_min": best["accepted_per_min"],
+            "worldcontact_accepted_per_min": expanded["accepted_per_min"],
+            "ratio": expanded["accepted_per_min"] / best["accepted_per_min"] if best["accepted_per_min"] else None,
+            "acceptance": expanded["acceptance_rate"], "generated": expanded["generated"],
+            "teacher_agreement": teacher.get("agreement"), "teacher_plans": teacher.get("plans"),
+            "teacher_agreement_expansion": (weighted or {}).get("agreement"),
+            "teacher_rms_mm": _mm(teacher.get("mean_rms_error_m")),
+            "teacher_rms_mm_accepted": _mm(teacher.get("accepted_mean_rms_error_m")),
+            "timing": expanded.get("timing"), "slots": expanded.get("slots"),
+            "projection_stats": expanded.get("projection_stats")}
+
+
 def combined(runs: list[tuple[str, dict[str, Any], dict[str, Any]]]) -> dict[str, Any]:
     """One report from several benchmark runs on one device: (label, benchmark JSON, its expand report) each; a row
-    per run with Newton's best worlds count of that same run, the expansion's figures and its teacher check if it
-    ran (None where the run stopped before it)."""
+    per run (`speed_row`; teacher figures None where the run stopped before its check)."""
     rows, newton = [], []
     for label, bench, expanded in runs:
-        best = max(bench["newton"], key=lambda r: r["accepted_per_min"])
-        teacher = bench.get("teacher") or {}
-        rms = teacher.get("mean_rms_error_m")
         newton += [{**r, "run": label} for r in bench["newton"]]
-        rows.append({"run": label, "vertices": expanded.get("vertices", 306), "newton_worlds": best["worlds"],
-                     "newton_accepted_per_min": best["accepted_per_min"],
-                     "worldcontact_accepted_per_min": expanded["accepted_per_min"],
-                     "ratio": expanded["accepted_per_min"] / best["accepted_per_min"],
-                     "acceptance": expanded["acceptance_rate"], "generated": expanded["generated"],
-                     "teacher_agreement": teacher.get("agreement"), "teacher_plans": teacher.get("plans"),
-                     "teacher_rms_mm": None if rms is None else 1e3 * rms, "timing": expanded.get("timing"),
-                     "slots": expanded.get("slots"), "projection_stats": expanded.get("projection_stats")})
+        rows.append({"run": label, **speed_row(bench["newton"], expanded, bench.get("teacher"))})
     first = runs[0][1]
     return {"benchmark": "expand_speed", "task": first["task"], "environment": first["environment"],
             "what": first["what"], "commands": [r[1]["command"] for r in runs], "rows": rows, "newton": newton}

@@ -19,6 +19,7 @@ stays the same is the agreement a perfect model could reach on these plans: the 
 from __future__ import annotations
 
 import time
+from collections import Counter
 from pathlib import Path
 from typing import Any
 
@@ -64,6 +65,10 @@ def _checked(store: TrajectoryStore, eid: str, newton: Replay) -> dict[str, Any]
             "newton": newton.verdict, "newton_failure_frame": newton.failure_frame, "newton_detail": newton.detail,
             "rms_error_m": [float(e) for e in rms], "final_rms_error_m": float(rms[-1]),
             "mean_rms_error_m": float(rms.mean())}
+
+
+def _mean(values: list[float]) -> float | None:
+    return float(np.mean(values)) if values else None
 
 
 def teacher_check(params: dict[str, Any], store_path: str | Path, limit: int | None = None,
@@ -113,10 +118,45 @@ def teacher_check(params: dict[str, Any], store_path: str | Path, limit: int | N
             "recall": share([p["worldcontact"] == "accepted" for p in checked if p["newton"] == "accepted"])
             if rejected_path is not None else None,
             "confusion": confusion, "mean_rms_error_m": float(np.mean([p["mean_rms_error_m"] for p in checked])),
+            "accepted_mean_rms_error_m": _mean([p["mean_rms_error_m"] for p in checked
+                                               if p["worldcontact"] == "accepted"]),
+            "rejected_mean_rms_error_m": _mean([p["mean_rms_error_m"] for p in checked
+                                               if p["worldcontact"] != "accepted"]),
             "episodes": checked, "wall_s": time.perf_counter() - started, "worlds": sim_cfg.worlds,
             "note": ("accepted and rejected plans: precision and recall" if rejected_path is not None else
                      "accepted plans only: precision, not recall"),
             "environment": environment_info(sim_cfg.device)}
+
+
+def expansion_weighted(confusion: dict[str, int], accepted: int, rejected: int) -> dict[str, float | int | None]:
+    """The check's figures for the whole expansion rather than its sample. A check of the first N accepted and the
+    first N rejected plans over-represents the rejected ones when the expansion accepts most plans; here each stratum
+    of `confusion` (WorldContact accepted, WorldContact rejected) counts as many episodes as it stands for (`accepted`,
+    `rejected`: the expansion's generated episodes of each). None where a stratum with episodes was not sampled."""
+    if min(accepted, rejected) < 0:
+        raise ValueError(f"teacher check: episode counts must be >= 0, got accepted {accepted}, rejected {rejected}")
+    plans = {"accepted": Counter(), "rejected": Counter()}  # per stratum: plans, Newton accepts, verdicts agree
+    for key, count in confusion.items():
+        ours, newton = (part.split(" ", 1)[1] for part in key.split(" / "))
+        stratum = plans["accepted" if ours == "accepted" else "rejected"]
+        stratum["plans"] += count
+        stratum["newton_accepts"] += count * (newton == "accepted")
+        stratum["agree"] += count * same_verdict(ours, newton)
+    episodes = {"accepted": accepted, "rejected": rejected}
+    out: dict[str, float | int | None] = {"accepted_episodes": accepted, "rejected_episodes": rejected,
+                                          "agreement": None, "newton_accepts": None, "recall": None}
+    if not accepted + rejected or any(episodes[k] and not plans[k]["plans"] for k in plans):
+        return out
+
+    def expected(stratum: str, what: str) -> float:
+        """Episodes of the stratum expected to be `what`, at its sample's rate."""
+        n = plans[stratum]["plans"]
+        return episodes[stratum] * plans[stratum][what] / n if n else 0.0
+
+    newton_yes = {k: expected(k, "newton_accepts") for k in plans}
+    both, total = sum(newton_yes.values()), accepted + rejected
+    return out | {"agreement": sum(expected(k, "agree") for k in plans) / total, "newton_accepts": both / total,
+                  "recall": newton_yes["accepted"] / both if both else None}
 
 
 def run(params: dict[str, Any], store: str | Path = TEACHER_CHECK["store"],
