@@ -190,6 +190,13 @@ def _fabric_stretch(v: dict[str, Any]) -> str:
     return "bag edge strain while lifting, per setting: " + "; ".join(row(r) for r in v["settings"])
 
 
+def _resolution(v: dict[str, Any]) -> str:
+    rows = "; ".join(f"{n} vertices: {'stable' if ok else 'unstable'}, {_g(cost)} s per episode, agreement {_g(agree, 2)}"
+                     for n, ok, cost, agree in zip(*(v[f"rows.*.{k}"].values() for k in (
+                         "vertices", "stable", "newton_s_per_episode", "verdict_agreement"))))
+    return f"bag resolution in Newton (needed: {v['needed_vertices']}): {rows}"
+
+
 def _rollout_speed(v: dict[str, Any]) -> str:
     rows = ", ".join(f"{name} {_g(value)} (target {'>=' if higher else '<='} {_g(goal)})"
                      for name, (value, goal, higher) in v["targets"].items())
@@ -308,6 +315,9 @@ KINDS: tuple[ReportKind, ...] = (
                 "settings.*.rollout_s_per_episode"), _convergence),
     ReportKind("fabric stretch", ("fabric_stretch_*.json",), ("settings", "settings.*.setting",
                                                               "settings.*.iterations"), _fabric_stretch),
+    ReportKind("bag resolution", ("resolution_*.json",),
+               ("rows.*.vertices", "rows.*.stable", "rows.*.newton_s_per_episode", "rows.*.verdict_agreement",
+                "needed_vertices"), _resolution),
     ReportKind("rollout speed", ("rollout_speed_*.json",), ("vertices", "targets"), _rollout_speed),
     ReportKind("rollout profile", ("rollout_profile_*.json",),
                ("runs.*.autocast_bf16", "runs.*.batch", "runs.*.vertices", "runs.*.ms_per_step_median"), _profile),
