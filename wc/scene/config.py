@@ -76,11 +76,18 @@ class RobotConfig:
     left_tag: int  # link k of the left arm gets tag left_tag + k
     right_tag: int
     home_q: tuple[float, float, float, float, float, float]  # joints 1..6 [rad]
+    idle_q: tuple[float, float, float, float, float, float] | None = None  # an arm the task does not move [rad]
 
     def validate(self) -> None:
         _positive(sample_spacing_m=self.sample_spacing_m)
         if not self.sampled_links:
             raise ValueError("sampled_links must name at least one link")
+        if self.idle_q is not None:
+            from wc.scene.piper import JOINT_LIMITS  # noqa: PLC0415 (torch, for this check only)
+            low, high = JOINT_LIMITS[:, 0], JOINT_LIMITS[:, 1]
+            if not all(lo <= q <= hi for q, lo, hi in zip(self.idle_q, low, high)):
+                raise ValueError(f"robot.idle_q {list(self.idle_q)} is outside the PiPER's joint limits "
+                                 f"{JOINT_LIMITS.tolist()} rad")
 
 
 @dataclass(frozen=True)

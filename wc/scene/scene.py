@@ -56,6 +56,7 @@ class Scene:
     env_names: tuple[str, ...] = ("table",)
     cameras: dict[str, CameraConfig] = field(default_factory=dict)
     home_q: tuple[float, ...] = ()
+    idle_q: tuple[float, ...] = ()  # joints of an arm a task program does not move (empty: home_q)
     held: dict[str, HeldObject] = field(default_factory=dict)  # body name (held_<object>) -> held object
 
     @property
@@ -151,5 +152,6 @@ def build_scene(cfg: SceneConfig, object_names: Sequence[str] = ("bag",),
         samples=samples,
         cameras=dict(cfg.cameras),
         home_q=tuple(robot.home_q),
+        idle_q=tuple(robot.idle_q or robot.home_q),
         held=held_objects,
     )

@@ -122,9 +122,10 @@ def upright_bag(scene: Scene, common, yaw_deg: float, rng: np.random.Generator) 
 
 
 def hover_action(scene: Scene, common, targets: list[tuple[str, np.ndarray, np.ndarray]], task: str) -> np.ndarray:
-    """Home action with each listed arm's TCP `start_height_m` back along the approach from its
-    target point, gripper open: (side, point, rotation) per arm."""
+    """Each listed arm's TCP `start_height_m` back along the approach from its target point, gripper open: (side,
+    point, rotation) per arm; an arm not listed at the scene's idle posture (scene.robot.idle_q, default home)."""
     action = scene.home_action()
+    action[0:6] = action[7:13] = np.asarray(scene.idle_q or scene.home_q, np.float32)
     for side, point, rot in targets:
         cols, opening = (slice(7, 13), 13) if side == "right" else (slice(0, 6), 6)
         action[cols] = reach(scene, side, point - common.start_height_m * rot[:, 2], rot, common.ik, task)
