@@ -76,7 +76,7 @@ class RobotConfig:
     left_tag: int  # link k of the left arm gets tag left_tag + k
     right_tag: int
     home_q: tuple[float, float, float, float, float, float]  # joints 1..6 [rad]
-    idle_q: tuple[float, float, float, float, float, float] | None = None  # an arm the task does not move [rad]
+    idle_q: tuple[float, float, float, float, float, float] | None = None  # the arm a one-arm task leaves [rad]
 
     def validate(self) -> None:
         _positive(sample_spacing_m=self.sample_spacing_m)
