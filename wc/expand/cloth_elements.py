@@ -69,6 +69,13 @@ def compact(valid: Tensor, capacity: int | None) -> tuple[Tensor, Tensor, Tensor
     return idx[:capacity], torch.arange(capacity, device=flat.device) < count, (count - capacity).clamp_min(0)
 
 
+def spread_unused(index: Tensor, valid: Tensor, size: int) -> Tensor:
+    """Scatter targets (M,) of a padded pair list with its unused entries sent to distinct rows (k mod size). Unused
+    entries add zeros wherever they point, but a capacity's worth of them on one row (compact's padding all points at
+    entry 0) serialises the device's atomic adds on that row."""
+    return torch.where(valid, index, torch.arange(len(index), device=index.device) % size)
+
+
 def host_checks(t: Tensor) -> bool:
     """Whether loops over tensors on t's device may read values back to stop early (the CPU: nothing is captured in a
     graph and a read costs nothing) or must run their fixed passes (CUDA)."""

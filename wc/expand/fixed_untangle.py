@@ -18,7 +18,7 @@ import torch
 from torch import Tensor
 
 from wc.expand.crossing_free import point_triangle_distance, segment_segment_distance
-from wc.expand.cloth_elements import ClothElements, compact, host_checks
+from wc.expand.cloth_elements import ClothElements, compact, host_checks, spread_unused
 from wc.validate.cloth_bvh import ClothBVH
 
 
@@ -87,7 +87,7 @@ class BoundedStep:
         the count of pairs over their bound at the start."""
         bsz, n = step.shape[:2]
         flat = step.view(-1, 3)
-        fi, fj = episode * n + i, episode * n + j
+        fi, fj = (spread_unused(episode * n + k, valid, bsz * n) for k in (i, j))
         weight = self.yield_weights(step).view(-1)
         share_i = (weight[fi] / (weight[fi] + weight[fj]))[:, None]
         limited = None

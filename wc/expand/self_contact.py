@@ -19,6 +19,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from wc.expand.cloth_elements import spread_unused
 from wc.validate.self_intersection import unique_edges
 
 CHUNK = 1024  # vertices per centroid-distance block (bounds memory: B x CHUNK x F floats)
@@ -106,17 +107,20 @@ def separate_pairs(x_prev: Tensor, x: Tensor, b: Tensor, row: Tensor, tri: Tenso
     w = barycentric(q - d[:, None] * normal, p)  # (M, 3) of the point's projection on the plane
     inside = (w >= -1e-6).all(dim=-1) & valid
     gap = torch.nan_to_num(torch.where(inside, (gap_m - side * d).clamp_min(0.0), torch.zeros_like(d)))
-    shortfall = x.new_zeros(x.shape[0]).scatter_reduce(0, b, gap, "amax")
+    shortfall = x.new_zeros(x.shape[0]).scatter_reduce(0, spread_unused(b, valid, x.shape[0]), gap, "amax")
     wq, wt = inv_mass[b, row], inv_mass[b[:, None], tri] * w  # (M,), (M, 3)
     total = (wq + (wt * w).sum(-1)).clamp_min(1e-12)
     move = (gap * side / total)[:, None] * normal  # along the normal, towards the vertex's side
     active = (gap > 0).to(x.dtype)
     flat, count = torch.zeros_like(x).view(-1, 3), x.new_zeros(x.shape[0] * n)
-    flat.index_add_(0, b * n + row, wq[:, None] * move)
-    count.index_add_(0, b * n + row, active * (wq > 0))
+    rows = len(flat)
+    at = spread_unused(b * n + row, valid, rows)
+    flat.index_add_(0, at, wq[:, None] * move)
+    count.index_add_(0, at, active * (wq > 0))
     for c in range(3):
-        flat.index_add_(0, b * n + tri[:, c], -wt[:, c, None] * move)
-        count.index_add_(0, b * n + tri[:, c], active * (wt[:, c] > 0))
+        at = spread_unused(b * n + tri[:, c], valid, rows)
+        flat.index_add_(0, at, -wt[:, c, None] * move)
+        count.index_add_(0, at, active * (wt[:, c] > 0))
     x += (flat / count.clamp_min(1.0)[:, None]).view_as(x)
     return shortfall
 
