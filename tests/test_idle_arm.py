@@ -10,7 +10,7 @@ from wc.scene.config import SceneConfig
 from wc.scene.scene import build_scene
 from wc.tasks.base import EpisodeSpec, get_task
 
-PARKED = [2.5, 1.57, -1.3485, 0.0, 0.0, 0.0]  # joint 1 turned back: the left gripper ~0.8 m from the bag
+PARKED = [2.5, 1.57, -1.3485, 0.0, 0.0, 0.0]  # joint 1 turned back: the left wrist ~0.7 m from the bag
 
 
 def _lift_actions(*overrides: str) -> tuple[np.ndarray, np.ndarray, object]:
