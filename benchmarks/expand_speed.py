@@ -34,7 +34,7 @@ from wc.config import add_params_arguments, load_section, read_params
 from wc.data.store import TrajectoryStore
 from wc.devices import resolve_warp_device
 from wc.expand.stage import expand
-from wc.expand.teacher import expansion_weighted, teacher_check
+from wc.expand.teacher import teacher_check
 from wc.reports import environment_info, write_json_atomic, write_report_atomic
 from wc.scene.config import SceneConfig
 from wc.seeds import episode_seed
@@ -156,8 +156,6 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     report["teacher"] = {k: teacher.get(k) for k in ("plans", "agreement", "precision", "recall", "newton_accepts",
                                                       "constant_agreement", "mean_rms_error_m",
                                                       "accepted_mean_rms_error_m", "confusion", "wall_s")}
-    report["teacher"]["expansion_weighted"] = expansion_weighted(teacher["confusion"], gen["accepted"],
-                                                                 gen["generated"] - gen["accepted"])
     src = TrajectoryStore(store)
     first = src.episodes_where(task=args.task, accepted=True)[0]
     vertices = int(src.read_window(first, 0, 1, ("x",))["x"].shape[1])  # the scene's object vertices, as simulated

@@ -6,11 +6,7 @@ from pathlib import Path
 from typing import Any
 
 from wc.expand.teacher import expansion_weighted
-from wc.reports import pyplot, save_figure_atomic, write_report_atomic
-
-
-def _f(value: Any, fmt: str = ".1f") -> str:
-    return "-" if value is None else format(value, fmt)
+from wc.reports import cell, pyplot, save_figure_atomic, write_report_atomic
 
 
 def markdown(report: dict[str, Any]) -> str:
@@ -23,11 +19,11 @@ def markdown(report: dict[str, Any]) -> str:
              "teacher agreement: sampled plans (plans) / expansion-weighted | RMS to Newton mm: sampled / accepted "
              "plans |", "|---|---|---|---|---|---|---|---|"]
     for r in report["rows"]:
-        lines.append(f"| {r.get('run', '-')} | {r['vertices']} | {_f(r['newton_accepted_per_min'])} ({r['newton_worlds']}) | "
-                     f"{_f(r['worldcontact_accepted_per_min'])} | {_f(r['ratio'], '.2f')} | {_f(r['acceptance'], '.2f')} "
-                     f"| {_f(r['teacher_agreement'], '.2f')} ({r['teacher_plans']}) / "
-                     f"{_f(r.get('teacher_agreement_expansion'), '.2f')} | {_f(r['teacher_rms_mm'])} / "
-                     f"{_f(r.get('teacher_rms_mm_accepted'))} |")
+        lines.append(f"| {r.get('run', '-')} | {r['vertices']} | {cell(r['newton_accepted_per_min'])} "
+                     f"({r['newton_worlds']}) | {cell(r['worldcontact_accepted_per_min'])} | {cell(r['ratio'], '.2f')} "
+                     f"| {cell(r['acceptance'], '.2f')} | {cell(r['teacher_agreement'], '.2f')} ({r['teacher_plans']}) "
+                     f"/ {cell(r.get('teacher_agreement_expansion'), '.2f')} | {cell(r['teacher_rms_mm'])} / "
+                     f"{cell(r.get('teacher_rms_mm_accepted'))} |")
     lines += ["", "## Newton per worlds count (reset, settle, plan, simulate, checks; after a warm-up batch)", "",
               "| run | worlds | episodes | accepted | s | accepted/min | episodes/min | acceptance |",
               "|---|---|---|---|---|---|---|---|"]
@@ -49,10 +45,10 @@ def markdown(report: dict[str, Any]) -> str:
         lines += [f"| {k} | {v:.2f} |" for k, v in (e.get("timing") or {}).items()]
     t = report.get("teacher")
     if t:
-        lines += ["", f"Teacher check: {t['plans']} plans, agreement {_f(t['agreement'], '.2f')}, precision "
-                      f"{_f(t['precision'], '.2f')}, recall {_f(t['recall'], '.2f')}, Newton accepts "
-                      f"{_f(t['newton_accepts'], '.2f')} (one verdict for all: {_f(t['constant_agreement'], '.2f')}), "
-                      f"mean RMS {_f(1e3 * t['mean_rms_error_m'] if t['mean_rms_error_m'] is not None else None)} mm."]
+        lines += ["", f"Teacher check: {t['plans']} plans, agreement {cell(t['agreement'], '.2f')}, precision "
+                      f"{cell(t['precision'], '.2f')}, recall {cell(t['recall'], '.2f')}, Newton accepts "
+                      f"{cell(t['newton_accepts'], '.2f')} (one verdict for all: "
+                      f"{cell(t['constant_agreement'], '.2f')}), mean RMS {cell(t['mean_rms_error_m'], scale=1e3)} mm."]
     return "\n".join(lines) + "\n"
 
 
@@ -89,17 +85,15 @@ def speed_row(newton: list[dict[str, Any]], expanded: dict[str, Any], teacher: d
     it ran."""
     best = max(newton, key=lambda r: r["accepted_per_min"])
     teacher = teacher or {}
-    weighted = teacher.get("expansion_weighted")
-    if weighted is None and teacher.get("confusion"):
-        weighted = expansion_weighted(teacher["confusion"], expanded["accepted"],
-                                      expanded["generated"] - expanded["accepted"])
+    weighted = expansion_weighted(teacher["confusion"], expanded["accepted"],
+                                  expanded["generated"] - expanded["accepted"]) if teacher.get("confusion") else {}
     return {"vertices": expanded.get("vertices", 306), "newton_worlds": best["worlds"],
             "newton_accepted_per_min": best["accepted_per_min"],
             "worldcontact_accepted_per_min": expanded["accepted_per_min"],
             "ratio": expanded["accepted_per_min"] / best["accepted_per_min"] if best["accepted_per_min"] else None,
             "acceptance": expanded["acceptance_rate"], "generated": expanded["generated"],
             "teacher_agreement": teacher.get("agreement"), "teacher_plans": teacher.get("plans"),
-            "teacher_agreement_expansion": (weighted or {}).get("agreement"),
+            "teacher_agreement_expansion": weighted.get("agreement"),
             "teacher_rms_mm": _mm(teacher.get("mean_rms_error_m")),
             "teacher_rms_mm_accepted": _mm(teacher.get("accepted_mean_rms_error_m")),
             "timing": expanded.get("timing"), "slots": expanded.get("slots"),

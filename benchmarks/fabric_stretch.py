@@ -25,17 +25,18 @@ import statistics
 import sys
 import time
 from collections import Counter
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from benchmarks.newton_convergence import draw_specs
-from wc.agent.replay import plan_specs, replay, share
+from wc.agent.replay import Plan, Replay, plan_specs, replay, share
 from wc.agent.runner import TaskWorld, build_task_world
 from wc.config import add_params_arguments, load_section, read_params
 from wc.devices import resolve_warp_device
-from wc.reports import environment_info, pyplot, save_figure_atomic, write_report_atomic
+from wc.reports import cell, environment_info, pyplot, save_figure_atomic, write_report_atomic
 from wc.scene.config import SceneConfig
 from wc.sim.config import SimConfig
 from wc.tasks.bag_geometry import lowest_height
@@ -107,6 +108,18 @@ def worst_edges(episodes: list[dict[str, Any]]) -> dict[str, dict[str, float | i
     return out
 
 
+def replay_batches(world: TaskWorld, plans: list[Plan], validate_cfg: ValidateConfig, frame_dt_s: float,
+                   perturb_m: float = 0.0, seed: int = 0, desc: str = "newton replay"
+                   ) -> Iterator[tuple[list[Plan], list[Replay], float]]:
+    """wc.agent.replay.replay one `sim.worlds` batch at a time, positions kept, so that a caller reducing them holds
+    one batch's: per batch its plans, their replays and the seconds the replay took (batch k's noise seeded seed + k)."""
+    for k, first in enumerate(range(0, len(plans), world.sim.worlds)):
+        batch = plans[first:first + world.sim.worlds]
+        started = time.perf_counter()
+        replays = replay(world, batch, validate_cfg, frame_dt_s, perturb_m, seed + k, desc=desc)
+        yield batch, replays, time.perf_counter() - started
+
+
 def measure(params: dict[str, Any], task_name: str, specs: list[EpisodeSpec], setting: list[str],
             limits: tuple[float, float]) -> dict[str, Any]:
     """One setting's row: plans, verdicts, stretch summaries and timings."""
@@ -124,11 +137,8 @@ def measure(params: dict[str, Any], task_name: str, specs: list[EpisodeSpec], se
     if not plans:
         return row | {"verdicts": {}, "accepted": None, "episodes": []}
     stretch, episodes, verdicts, rollout_s = BagStretch(world), [], [], 0.0
-    for first in range(0, len(plans), sim_cfg.worlds):  # a batch's positions are dropped once measured
-        batch = plans[first:first + sim_cfg.worlds]
-        started = time.perf_counter()
-        replays = replay(world, batch, validate_cfg, sim_cfg.frame_dt_s, desc=label)
-        rollout_s += time.perf_counter() - started
+    for batch, replays, seconds in replay_batches(world, plans, validate_cfg, sim_cfg.frame_dt_s, desc=label):
+        rollout_s += seconds
         for plan, r in zip(batch, replays):
             verdicts.append(r.verdict)
             episodes.append({"seed": plan.spec.seed, "verdict": r.verdict, "failure_frame": r.failure_frame,
@@ -146,7 +156,7 @@ def measure(params: dict[str, Any], task_name: str, specs: list[EpisodeSpec], se
 
 
 def _pct(value: float | None) -> str:
-    return "-" if value is None else f"{value * 100:.1f}"
+    return cell(value, scale=100)
 
 
 def markdown(report: dict[str, Any]) -> str:

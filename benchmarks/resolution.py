@@ -35,11 +35,11 @@ from typing import Any
 import numpy as np
 import trimesh
 
-from benchmarks.fabric_stretch import BagStretch, parse_setting
+from benchmarks.fabric_stretch import BagStretch, parse_setting, replay_batches
 from benchmarks.newton_convergence import draw_specs
 from benchmarks.resolution_report import chart, markdown
-from wc.agent.replay import plan_specs, replay, same_verdict, share
-from wc.agent.runner import TaskWorld, build_task_world
+from wc.agent.replay import plan_specs, same_verdict, share
+from wc.agent.runner import build_task_world
 from wc.config import add_params_arguments, load_section, read_params
 from wc.devices import resolve_warp_device
 from wc.render.geometry import scene_geometry
@@ -88,36 +88,27 @@ class Measured:
         self.images: dict[int, dict[str, np.ndarray]] = {}
 
 
-def _bag_world(params: dict[str, Any], task_name: str) -> TaskWorld:
-    world = build_task_world(load_section(params, "scene", SceneConfig), load_section(params, "sim", SimConfig),
-                             get_task(task_name, params))
-    if "bag" not in world.scene.objects:
-        raise ValueError(f"resolution study: task {task_name} has no bag")
-    return world
-
-
 def measure(params: dict[str, Any], overrides: list[str], task_name: str, specs: list[EpisodeSpec],
             points: np.ndarray, args: argparse.Namespace) -> tuple[dict[str, Any], Measured]:
     """One resolution's row (`overrides`: its own, recorded) and its reduced replays."""
     sim_cfg, validate_cfg = load_section(params, "sim", SimConfig), load_section(params, "validate", ValidateConfig)
-    world = _bag_world(params, task_name)
+    world = build_task_world(load_section(params, "scene", SceneConfig), sim_cfg, get_task(task_name, params))
+    stretch = BagStretch(world)  # names a task without a bag
     bag = world.scene.objects["bag"]
     carry: SurfaceMap = surface_map(bag.vertices, bag.faces, points)
     rows = world.scene.vertex_slices()["bag"]
     started = time.perf_counter()
     plans = plan_specs(world, specs, sim_cfg.worlds)
     plan_s = time.perf_counter() - started
-    out, stretch, rollout_s = Measured(), BagStretch(world), 0.0
+    out, rollout_s = Measured(), 0.0
     renderer = None
     if args.image_plans > 0:
         cams = render_cameras(load_section(params, "scene", SceneConfig).cameras, CAMERAS, args.image_px, args.image_px)
         renderer = EpisodeRenderer(scene_geometry(world.scene), cams, resolve_warp_device(sim_cfg.device, "sim.device"),
                                    batch=args.image_frames, shadows=False)
-    for first in range(0, len(plans), sim_cfg.worlds):
-        batch = plans[first:first + sim_cfg.worlds]
-        tic = time.perf_counter()
-        replays = replay(world, batch, validate_cfg, sim_cfg.frame_dt_s, desc=f"{len(bag.vertices)} vertices")
-        rollout_s += time.perf_counter() - tic
+    for batch, replays, seconds in replay_batches(world, plans, validate_cfg, sim_cfg.frame_dt_s,
+                                                  desc=f"{len(bag.vertices)} vertices"):
+        rollout_s += seconds
         for plan, r in zip(batch, replays):
             seed = plan.spec.seed
             out.verdicts[seed] = r.verdict
@@ -127,11 +118,9 @@ def measure(params: dict[str, Any], overrides: list[str], task_name: str, specs:
                 at = frame_indices(len(r.x), args.image_frames)
                 out.images[seed] = renderer.render(r.x[at], world.scene.link_poses(plan.action)[at], "resolution")
     if args.noise_m > 0:  # Newton against itself: reversed batch order, perturbed frame-0 positions
-        again = list(reversed(plans))
-        for first in range(0, len(again), sim_cfg.worlds):
-            batch = again[first:first + sim_cfg.worlds]
-            for plan, r in zip(batch, replay(world, batch, validate_cfg, sim_cfg.frame_dt_s, args.noise_m,
-                                             seed=args.seed + 1, desc="again")):
+        for batch, replays, _ in replay_batches(world, list(reversed(plans)), validate_cfg, sim_cfg.frame_dt_s,
+                                                args.noise_m, seed=args.seed + 1, desc="again"):
+            for plan, r in zip(batch, replays):
                 out.repeat_points[plan.spec.seed] = carry.apply(r.x[:, rows]).astype(np.float32)
     verdicts = list(out.verdicts.values())
     lifted = stretch.summaries(0.05)["lifted"]["all"] or {}

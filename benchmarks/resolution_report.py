@@ -6,11 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from wc.reports import pyplot, save_figure_atomic
-
-
-def _f(value: Any, fmt: str = ".1f", scale: float = 1.0) -> str:
-    return "-" if value is None else format(scale * value, fmt)
+from wc.reports import cell, pyplot, save_figure_atomic
 
 
 def markdown(report: dict[str, Any]) -> str:
@@ -32,9 +28,10 @@ def markdown(report: dict[str, Any]) -> str:
         mark = " (reference)" if r.get("reference") else ""
         lines.append(f"| {r['vertices']}{mark} | {', '.join(r['overrides']) or '-'} | {verdicts} | "
                      f"{'yes' if r['stable'] else 'no'} | {r['newton_s_per_episode']:.2f} | "
-                     f"{_f(r.get('verdict_agreement'), '.2f')} | {_f(r.get('rms_mm'))} | {_f(r['noise_floor_mm'])} | "
-                     f"{_f(r['p99_stretch'], scale=100)} / {_f(r['max_stretch'], scale=100)} | "
-                     f"{_f(image.get('top'), '.3f')} / {_f(image.get('wrist'), '.3f')} |")
+                     f"{cell(r.get('verdict_agreement'), '.2f')} | {cell(r.get('rms_mm'))} | "
+                     f"{cell(r['noise_floor_mm'])} | "
+                     f"{cell(r['p99_stretch'], scale=100)} / {cell(r['max_stretch'], scale=100)} | "
+                     f"{cell(image.get('top'), '.3f')} / {cell(image.get('wrist'), '.3f')} |")
     needed = report.get("needed_vertices")
     lines += ["", f"Needed: **{needed if needed is not None else 'none found'}** vertices: the coarsest stable "
                   f"resolution whose verdicts agree >= {report['agreement_needed']:g} with the reference and whose "

@@ -15,6 +15,11 @@ from typing import Any
 from wc.atomic import write_atomic
 
 
+def cell(value: Any, fmt: str = ".1f", scale: float = 1.0) -> str:
+    """A report table's cell: value x scale formatted, "-" for a missing value."""
+    return "-" if value is None else format(scale * value, fmt)
+
+
 def write_json_atomic(path: str | Path, data: dict[str, Any]) -> Path:
     """Write `data` as indented JSON at `path`; a reader never sees a half-written file."""
     text = json.dumps(data, indent=2, sort_keys=True, default=float) + "\n"
