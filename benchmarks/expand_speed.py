@@ -109,7 +109,8 @@ def write_newton_store(params: dict[str, Any], task_name: str, records: list[Epi
 def expansion_row(report: dict[str, Any]) -> dict[str, Any]:
     """The figures of one expand report the benchmark keeps."""
     keys = ("engine", "slots", "generated", "accepted", "acceptance_rate", "rejections", "infeasible_plans", "wall_s",
-            "accepted_per_min", "frames_generated", "rollout_s", "projection_stats", "timing", "restarts")
+            "accepted_per_min", "frames_generated", "rollout_s", "projection_stats", "timing", "restarts",
+            "tail_shrinks")
     return {k: report.get(k) for k in keys}
 
 

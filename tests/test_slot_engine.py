@@ -287,3 +287,28 @@ def test_the_static_pair_path_equals_the_exact_one_when_the_capacity_suffices_an
     tight, tight_stats = bounded(8)
     assert int(tight_stats["pairs_dropped"]) > full_lists
     assert float((tight - exact).abs().max()) > 1e-4
+
+
+@pytest.mark.slow
+def test_the_tail_moves_to_fewer_slots_and_gives_the_same_episodes(inputs, tmp_path):
+    """Once nothing is left to load, the running episodes move where they stand to half as many slots (the frame's
+    cost follows the slot count): the same episodes and verdicts as staying in all of them, their frames before the
+    move the same to the bit, and the device time of the replaced slots still counted. (The projection's candidate
+    pairs are chosen again for the new batch, as whenever slots load, so later frames of this random network's
+    episodes differ.)"""
+    runs = {}
+    for least in (0, 1):
+        runs[least] = _run(inputs, tmp_path, f"tail{least}", engine="slots", batch_size=4, target_trajectories=20,
+                           max_attempts=6, seed=5, slots={**inputs[0]["expand"]["slots"], "tail_min_slots": least,
+                                                                      "sync_every": 2})
+    (r0, out0, rej0), (r1, out1, rej1) = runs[0], runs[1]
+    assert r0["tail_shrinks"] == 0 and r1["tail_shrinks"] >= 1
+    assert r1["generated"] == r0["generated"] >= 5 and r1["slot_loads"] == r1["generated"]  # none ran twice
+    assert sorted((e["seed"], e["reason"], e["frame"]) for e in r1["rejected_episodes"]) == \
+        sorted((e["seed"], e["reason"], e["frame"]) for e in r0["rejected_episodes"])
+    for a, b in ((out0, out1), (rej0, rej1)):
+        assert [a.episode_attrs(e)["seed"] for e in a.episode_ids] == [b.episode_attrs(e)["seed"] for e in b.episode_ids]
+        for e in a.episode_ids:
+            xa, xb = a.read_episode(e, ("x",))["x"], b.read_episode(e, ("x",))["x"]
+            assert xa.shape == xb.shape and np.isfinite(xb).all() and np.array_equal(xa[:3], xb[:3])
+    assert r1["timing"]["device_network_s"] > 0 and r1["rollout_s"] > 0

@@ -4,7 +4,9 @@ A stage killed with SIGKILL runs no clean-up, so the worker processes of its poo
 run on, holding memory and the device. Every worker of `spawn_pool` ends with its parent in two ways: on Linux the
 kernel sends it SIGKILL when its parent dies (prctl PR_SET_PDEATHSIG), and on any platform a daemon thread in the
 worker polls the parent's pid and exits the worker once the parent is gone. Workers start with `spawn`: warp, Newton
-and CUDA must not be forked once initialised.
+and CUDA must not be forked once initialised. The initializer's arguments reach the workers through a file: written to
+a spawned child's pipe, more than a pipe's buffer (64 KiB) would hold the parent until that child had imported its
+modules, one worker after another, before the parent could go on (~5 s a worker).
 """
 
 from __future__ import annotations
@@ -13,8 +15,10 @@ import ctypes
 import ctypes.util
 import multiprocessing
 import os
+import pickle
 import signal
 import sys
+import tempfile
 import threading
 import time
 from collections.abc import Callable
@@ -66,10 +70,33 @@ def end_with_parent(parent_pid: int) -> None:
     watch_parent(parent_pid)
 
 
-def _start_worker(parent_pid: int, initializer: Callable[..., None] | None, initargs: tuple[Any, ...]) -> None:
+def _start_worker(parent_pid: int, initializer: Callable[..., None] | None, initargs_file: str) -> None:
     end_with_parent(parent_pid)  # a parent killed while this worker imported the stage's modules: exit now
     if initializer is not None:
+        try:
+            with open(initargs_file, "rb") as f:
+                initargs = pickle.load(f)
+        except FileNotFoundError:  # the pool was shut down before this worker started
+            os._exit(0)
         initializer(*initargs)
+
+
+class _SpawnPool(ProcessPoolExecutor):
+    """A process pool that removes its initializer's argument file once shut down."""
+
+    def __init__(self, workers: int, initializer: Callable[..., None] | None, initargs: tuple[Any, ...]) -> None:
+        with tempfile.NamedTemporaryFile("wb", prefix="wc-pool-", suffix=".pkl", delete=False) as f:
+            pickle.dump(initargs, f, protocol=pickle.HIGHEST_PROTOCOL)
+        self.initargs_file = f.name
+        super().__init__(workers, mp_context=multiprocessing.get_context("spawn"), initializer=_start_worker,
+                         initargs=(os.getpid(), initializer, f.name))
+
+    def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
+        super().shutdown(wait=wait, cancel_futures=cancel_futures)
+        try:
+            os.remove(self.initargs_file)
+        except FileNotFoundError:
+            pass
 
 
 def cores_each(workers: int) -> int:
@@ -81,6 +108,6 @@ def cores_each(workers: int) -> int:
 def spawn_pool(workers: int, initializer: Callable[..., None] | None = None,
                initargs: tuple[Any, ...] = ()) -> ProcessPoolExecutor:
     """A pool of `workers` spawned processes, each running `initializer(*initargs)` at start-up (a module-level
-    function: it is pickled) and ending with this process, however this process ends."""
-    return ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"), initializer=_start_worker,
-                               initargs=(os.getpid(), initializer, initargs))
+    function: it is pickled; initargs travel pickled through a temporary file) and ending with this process, however
+    this process ends."""
+    return _SpawnPool(workers, initializer, initargs)

@@ -20,6 +20,8 @@ class SlotConfig:
     expected_acceptance: float = 1.0  # acceptance assumed before the first verdict: the first wave proposes the wanted
     # episodes / this, so the replacements of its rejections need no wave of their own (1.0: exactly the wanted)
     planner_workers: int = 0  # planning processes beside the rollouts (0: in the stage's process)
+    tail_min_slots: int = 16  # once nothing is left to load, the running episodes move to half as many slots while
+    # they fill at most half, down to this many (a frame's cost follows the slot count, busy or not); 0: never
     bf16: bool = True  # the network in bf16 autocast (CUDA; the state stays fp32)
     cuda_graph: bool = True  # each part of a frame captured as a CUDA graph (CUDA)
     iterations: int = 10  # joint projection passes (edges, contacts, self-contact) per step
@@ -37,7 +39,8 @@ class SlotConfig:
                      "self_contact_capacity"):
             if getattr(self, name) < 1:
                 raise ValueError(f"slots.{name} must be >= 1, got {getattr(self, name)}")
-        for name in ("plans_ahead", "planner_workers", "final_edge_passes", "bounded_rounds", "rollback_rounds"):
+        for name in ("plans_ahead", "planner_workers", "tail_min_slots", "final_edge_passes", "bounded_rounds",
+                     "rollback_rounds"):
             if getattr(self, name) < 0:
                 raise ValueError(f"slots.{name} must be >= 0, got {getattr(self, name)}")
         if not 0.0 < self.expected_acceptance <= 1.0:

@@ -24,7 +24,7 @@ from wc.distributed import Unit, WorkerSpec, drive, open_executor
 from wc.expand.config import ExpandConfig
 
 SUMMED = ("attempts", "infeasible_plans", "generated", "accepted", "rejected", "frames_generated", "rollout_s",
-          "slot_loads", "restarts", "unused_proposals")  # report counts that add up over the shards
+          "slot_loads", "restarts", "tail_shrinks", "unused_proposals")  # report counts that add up over the shards
 LISTED = ("rejected_episodes", "infeasible")  # report lists concatenated in shard order
 
 

@@ -7,7 +7,10 @@ writing, with the device never waiting for the host where it can be avoided.
 - Planning runs in a pool (wc.expand.plan_pool) while the device rolls out the slots (wc.expand.slot_rollout).
 - Every `sync_every` frames the host reads the slots' first failures (one sync); a slot whose episode ended or failed
   gives its trajectory back and takes the next planned episode; the episode's verdict is completed on the host
-  (wc.expand.slot_verdicts) and filed in order; accepted episodes are written by a writer thread.
+  (wc.expand.slot_verdicts) while the device runs the next frames, and filed in order; accepted episodes are written
+  by a writer thread.
+- In the tail (nothing left to load) the running episodes move to half as many slots while they fill at most half
+  (`slots.tail_min_slots`): a frame costs the same whether its slots are busy or not.
 - Wall time per phase (planning, device wait, verdicts, loading, I/O) and device time per part of a frame
   (network, projection, untangle, checks) go into the report.
 """
@@ -29,7 +32,7 @@ from wc.expand.frame_checks import NEVER
 from wc.expand.phase_timer import PhaseTimer
 from wc.expand.plan import PlannedEpisode, SourceEpisode, pick_parent, plan_seed
 from wc.expand.plan_pool import PlanPool, PlanResult
-from wc.expand.slot_rollout import SlotPlan, SlotRollout
+from wc.expand.slot_rollout import PARTS, SlotPlan, SlotRollout
 from wc.expand.slot_verdicts import slot_verdict
 from wc.scene.scene import Scene
 from wc.tasks.base import UNREACHABLE, EpisodeSpec, Task
@@ -68,6 +71,8 @@ class _Outcome:
     v: np.ndarray | None = None
     failure: tuple[str, int] | None = None
     detail: dict[str, Any] | None = None
+    first: np.ndarray | None = None  # a rolled-out episode's first failing frames (FRAME_CHECKS); None once judged
+    complete: bool = False  # ... it ran to its last planned frame
 
 
 FRAMES_MARGIN = 1.5  # slot buffers hold this times the longest episode planned so far
@@ -75,13 +80,13 @@ MIN_EXPECTED_ACCEPTANCE = 0.25  # proposals ahead of the target at most 1 / this
 
 
 class SlotExpansion:
-    """One task's expansion on `cfg.batch_size` slots (module docstring). make_rollout(frames): the SlotRollout whose
-    slots hold episodes of up to `frames` frames; write(accepted, running, x, v, failure): stores a filed episode (on
-    the writer thread); wanted: accepted generated episodes to reach; started: time.perf_counter() of the stage;
-    shard: whose plan seeds (wc.expand.plan.plan_seed)."""
+    """One task's expansion on `cfg.batch_size` slots (module docstring). make_rollout(frames, batch): the SlotRollout
+    of `batch` slots that hold episodes of up to `frames` frames; write(accepted, running, x, v, failure): stores a
+    filed episode (on the writer thread); wanted: accepted generated episodes to reach; started: time.perf_counter()
+    of the stage; shard: whose plan seeds (wc.expand.plan.plan_seed)."""
 
     def __init__(self, task: Task, scene: Scene, sources: list[SourceEpisode], cfg: ExpandConfig,
-                 validate_cfg: ValidateConfig, dt: float, wanted: int, make_rollout: Callable[[int], SlotRollout],
+                 validate_cfg: ValidateConfig, dt: float, wanted: int, make_rollout: Callable[..., SlotRollout],
                  pool: PlanPool, started: float, write: Callable[..., None],
                  on_filed: Callable[[SlotExpansion], None] | None = None, shard: int = 0) -> None:
         self.task, self.scene, self.sources, self.cfg, self.validate_cfg = task, scene, sources, cfg, validate_cfg
@@ -100,6 +105,8 @@ class SlotExpansion:
         self.infeasible: list[dict[str, Any]] = []
         self.timer = PhaseTimer()
         self.restarts = 0
+        self.shrinks = 0  # moves of the tail's episodes to fewer slots
+        self._retired_part_s = dict.fromkeys(PARTS, 0.0)  # device time of rollouts replaced (restarts, shrinks)
         self.loads = 0  # planned episodes loaded into a slot (restarts not counted)
         self.io = ThreadPoolExecutor(1)
         self._writes: list[Future[None]] = []
@@ -156,33 +163,46 @@ class SlotExpansion:
 
     # -- verdicts and filing --
     def _retire(self, t: np.ndarray, first: np.ndarray) -> None:
+        """Slots whose episode ended or failed give their trajectories back (judged later, `_judge`) and are free."""
         done = [s for s, r in enumerate(self.slots)
                 if r is not None and (t[s] >= len(r.poses) - 1 or (first[s] < NEVER).any())]
         if not done:
             return
         with self.timer.phase("reading"):
             trajectories = self.rollout.take(done, [int(t[s]) for s in done])
-        with self.timer.phase("verdicts"):
-            links = len(self.scene.link_names)
-            for s, (x, v) in zip(done, trajectories):
-                r = self.slots[s]
-                n = len(x)
-                ep = Episode(x, v, r.planned.actions[:n], r.poses[:n, :links], self.dt)
-                failure = slot_verdict(self.task, self.scene, self.validate_cfg, self.cfg.task_check, r.spec, ep,
-                                       first[s], complete=n == len(r.poses))
-                detail = failure_detail(self.scene, ep, self.validate_cfg, *failure) if failure else {}
-                self.outcomes[r.index] = _Outcome(r, x=x, v=v, failure=failure, detail=detail)
-                self.slots[s] = None
+        for s, (x, v) in zip(done, trajectories):
+            r = self.slots[s]
+            self.outcomes[r.index] = _Outcome(r, x=x, v=v, first=first[s].copy(), complete=len(x) == len(r.poses))
+            self.slots[s] = None
 
-    def _file(self) -> None:
-        """File the outcomes in proposal order; once the target is reached, later ones are surplus (not written)."""
+    def _judge(self, out: _Outcome) -> None:
+        """A rolled-out episode's verdict and its failure's detail, completed on the host (wc.expand.slot_verdicts)."""
+        with self.timer.phase("verdicts"):
+            r, n = out.proposed, len(out.x)
+            ep = Episode(out.x, out.v, r.planned.actions[:n], r.poses[:n, :len(self.scene.link_names)], self.dt)
+            out.failure = slot_verdict(self.task, self.scene, self.validate_cfg, self.cfg.task_check, r.spec, ep,
+                                       out.first, complete=out.complete)
+            out.detail = failure_detail(self.scene, ep, self.validate_cfg, *out.failure) if out.failure else {}
+            out.first = None
+
+    def _file(self, judge: bool = True) -> None:
+        """File the outcomes in proposal order, judging rolled-out episodes first (judge False: stop at the first one
+        not judged yet, so that the host does not judge while the device waits); once the target is reached, later
+        ones are surplus (neither judged nor written)."""
         while self.filed in self.outcomes:
-            out = self.outcomes.pop(self.filed)
-            p = out.proposed
-            self.filed += 1
+            out = self.outcomes[self.filed]
             if self.done:
+                del self.outcomes[self.filed]
+                self.filed += 1
                 self.surplus += 1
                 continue
+            if out.first is not None:
+                if not judge:
+                    return
+                self._judge(out)
+            del self.outcomes[self.filed]
+            p = out.proposed
+            self.filed += 1
             if out.infeasible is not None:
                 self.planner.record(p.spec, UNREACHABLE)
                 self.infeasible.append({"seed": p.spec.seed, "cell": p.spec.cell, "parent": p.source.eid,
@@ -207,11 +227,43 @@ class SlotExpansion:
         """Slots for episodes of up to `frames` frames; the running episodes start again from frame 0."""
         with self.timer.phase("capture"):
             previous = self.rollout
-            self.rollout = self.make_rollout(frames)
+            self.rollout = self.make_rollout(frames, len(self.slots))
             if previous is not None:
                 self.restarts += 1
+                self._retire_rollout(previous)
                 self.rollout.grow_capacities([], previous.capacities)
         self._capture()
+
+    def _retire_rollout(self, rollout: SlotRollout) -> None:
+        """Keep a replaced rollout's device time (its frames' events already read)."""
+        for k, v in rollout.part_s.items():
+            self._retired_part_s[k] += v
+
+    def _shrink_tail(self) -> None:
+        """Nothing left to load (queue empty, no proposal due): the running episodes move, where they stand, to half
+        as many slots while they fill at most half of them, down to slots.tail_min_slots."""
+        least = self.cfg.slots.tail_min_slots
+        if least == 0 or self.queue or self._may_propose():
+            return
+        busy = [s for s, r in enumerate(self.slots) if r is not None]
+        size = len(self.slots)
+        while size // 2 >= max(len(busy), least):
+            size //= 2
+        if not busy or size == len(self.slots):
+            return
+        previous = self.rollout
+        with self.timer.phase("capture"):
+            self.rollout = self.make_rollout(previous.frames, size)
+            self.rollout.grow_capacities([], previous.capacities)
+            parked = [self.slots[busy[0]].slot_plan()] * size
+            parked = [SlotPlan(p.x0, p.poses[:1]) for p in parked]
+            self.rollout.load(list(range(size)), parked)
+            self.rollout.capture()
+            self.rollout.load(list(range(size)), parked)  # the capture's warm-up advanced them
+            self.rollout.adopt(previous, busy)
+        self._retire_rollout(previous)
+        self.slots = [self.slots[s] for s in busy] + [None] * (size - len(busy))
+        self.shrinks += 1
 
     def _restart(self, overflow: dict[str, int]) -> None:
         """After a neighbour overflow: larger capacities, and the running episodes from their first frame."""
@@ -232,9 +284,10 @@ class SlotExpansion:
             self.rollout.load(busy + idle, plans + parked)
 
     def _keep_busy(self) -> None:
-        """File, propose and fill until a slot runs or nothing more can be proposed or planned."""
+        """File, propose and fill until a slot runs or nothing more can be proposed or planned; episodes still to be
+        judged are judged here only when no slot runs (else after the next `advance`, beside the device)."""
         while True:
-            self._file()
+            self._file(judge=not any(r is not None for r in self.slots))
             self._propose()
             self._fill()
             if any(r is not None for r in self.slots) or not (self.queue or self._may_propose()):
@@ -251,7 +304,7 @@ class SlotExpansion:
             self._keep_busy()
             while any(r is not None for r in self.slots) and not self.done:
                 self.rollout.advance(self.cfg.slots.sync_every)
-                self._file()  # host work while the device runs
+                self._file()  # host work while the device runs: the last read's verdicts, filing, proposals
                 self._propose()
                 with self.timer.phase("device_wait"):
                     t, first_frames, overflow = self.rollout.read_failures()
@@ -260,6 +313,7 @@ class SlotExpansion:
                     continue
                 self._retire(t, first_frames)
                 self._keep_busy()
+                self._shrink_tail()
             self._file()
         finally:
             with self.timer.phase("io_wait"):
@@ -285,10 +339,16 @@ class SlotExpansion:
     @property
     def rollout_s(self) -> float:
         """Device time of the frames (the parts' sum)."""
-        return sum(self.rollout.part_s.values()) if self.rollout is not None else 0.0
+        return sum(self.part_s.values())
+
+    @property
+    def part_s(self) -> dict[str, float]:
+        """Device time per part of a frame, over every rollout of the run."""
+        current = self.rollout.part_s if self.rollout is not None else {}
+        return {k: v + current.get(k, 0.0) for k, v in self._retired_part_s.items()}
 
     def timing(self) -> dict[str, float]:
         """Seconds per host phase and per device part of a frame."""
-        device = self.rollout.part_s if self.rollout is not None else {}  # no episode ran: no slots were made
+        device = self.part_s if self.rollout is not None else {}  # no episode ran: no slots were made
         return {**{f"host_{k}_s": v for k, v in self.timer.seconds.items()},
                 **{f"device_{k}_s": v for k, v in device.items()}}

@@ -130,6 +130,7 @@ class SlotRollout:
                 for part in self._parts():
                     part()
         torch.cuda.current_stream(self.device).wait_stream(side)
+        stats = {k: v.clone() for k, v in self.fixed.stats.items()}  # the warm-up's frames are not counted
         graphs = []
         pool = None
         for part in self._parts():
@@ -139,7 +140,8 @@ class SlotRollout:
             pool = graph.pool()
             graphs.append(graph)
         self._graphs = graphs
-        self.fixed.reset_stats()
+        for k, v in stats.items():
+            self.fixed.stats[k].copy_(v)
         self._events = [torch.cuda.Event(enable_timing=True) for _ in range(len(PARTS) + 1)]
 
     def advance(self, frames: int) -> None:
@@ -189,6 +191,19 @@ class SlotRollout:
         self.failures.reset(mask)
         self.fixed.prepare(self.x)
         self._check_first_frames(mask)
+
+    def adopt(self, other: SlotRollout, slots: list[int]) -> None:
+        """Slots 0..k-1 take over the episodes in `other`'s `slots` where they stand (state, frame counter, poses,
+        trajectory so far, first failures); slots of this rollout from k on keep what they hold."""
+        if len(slots) > self.batch or other.frames != self.frames:
+            raise ValueError(f"{len(slots)} episodes of {other.frames} frames do not fit {self.batch} slots of "
+                             f"{self.frames}")
+        index = torch.as_tensor(slots, dtype=torch.long, device=self.device)
+        k = len(slots)
+        for name in ("x", "v", "poses", "traj_x", "traj_v", "t", "length"):
+            getattr(self, name)[:k] = getattr(other, name)[index]
+        self.failures.frames[:k] = other.failures.frames[index]
+        self.fixed.prepare(self.x)
 
     @torch.no_grad()
     def _check_first_frames(self, loaded: torch.Tensor) -> None:

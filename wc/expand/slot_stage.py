@@ -71,10 +71,11 @@ class SlotModel:
             x0 = torch.as_tensor(sources[0].x0[None], dtype=torch.float32, device=self.device)
             self.capacities = initial_capacities(self.predictor.model.config, self.layout, x0, poses, self.dt)
 
-    def rollout(self, frames: int) -> SlotRollout:
-        """Slots for episodes of up to `frames` frames."""
+    def rollout(self, frames: int, batch: int | None = None) -> SlotRollout:
+        """`batch` slots (None: expand.batch_size) for episodes of up to `frames` frames."""
         return SlotRollout(self.predictor.model, self.layout, self.predictor.topology_projection(self.layout),
-                           self.capacities, self.fixed, self.checks, self.link_columns, self.dt, self.cfg.batch_size,
+                           self.capacities, self.fixed, self.checks, self.link_columns, self.dt,
+                           batch or self.cfg.batch_size,
                            frames, self.validate_cfg.self_intersection_every, bf16=self.cfg.slots.bf16,
                            cuda_graph=self.cfg.slots.cuda_graph)
 

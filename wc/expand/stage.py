@@ -233,7 +233,8 @@ def expand_share(params: dict[str, Any], model_ref: str | Path, store: Path, out
         result = {**_report(slots, cfg, sources, checkpoint, store, out, rejected_out, phash, {"name": "local"},
                             str(model.device), environment_info(str(model.device)), time.perf_counter() - started),
                   "engine": "slots", "slots": cfg.batch_size, "sync_every": cfg.slots.sync_every,
-                  "slot_loads": slots.loads, "restarts": slots.restarts, "unused_proposals": slots.unused,
+                  "slot_loads": slots.loads, "restarts": slots.restarts,
+                  "tail_shrinks": slots.shrinks, "unused_proposals": slots.unused,
                   "timing": slots.timing()}
         write_json_atomic(report, result)
         return result
