@@ -33,10 +33,15 @@ def markdown(report: dict[str, Any]) -> str:
                      f"{cell(r['p99_stretch'], scale=100)} / {cell(r['max_stretch'], scale=100)} | "
                      f"{cell(image.get('top'), '.3f')} / {cell(image.get('wrist'), '.3f')} |")
     needed = report.get("needed_vertices")
-    lines += ["", f"Needed: **{needed if needed is not None else 'none found'}** vertices: the coarsest stable "
-                  f"resolution whose verdicts agree >= {report['agreement_needed']:g} with the reference and whose "
-                  "distance is within the reference's noise floor."
-              if "finished" in report else "Not finished: the comparison is made once every resolution has run."]
+    rule = (f"the coarsest stable resolution whose verdicts agree >= {report['agreement_needed']:g} with the reference "
+            "and whose distance is within the reference's noise floor")
+    if "finished" not in report:
+        lines += ["", "Not finished: the comparison is made once every resolution has run."]
+    elif needed is not None and any(r.get("reference") and r["vertices"] == needed for r in report["rows"]):
+        lines += ["", f"Needed: **at least {needed}** vertices ({rule}): no coarser resolution matches the reference, "
+                      "the finest that ran stably, and nothing finer confirms the reference itself."]
+    else:
+        lines += ["", f"Needed: **{needed if needed is not None else 'none found'}** vertices: {rule}."]
     return "\n".join(lines) + "\n"
 
 
