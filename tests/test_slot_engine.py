@@ -312,3 +312,25 @@ def test_the_tail_moves_to_fewer_slots_and_gives_the_same_episodes(inputs, tmp_p
             xa, xb = a.read_episode(e, ("x",))["x"], b.read_episode(e, ("x",))["x"]
             assert xa.shape == xb.shape and np.isfinite(xb).all() and np.array_equal(xa[:3], xb[:3])
     assert r1["timing"]["device_network_s"] > 0 and r1["rollout_s"] > 0
+
+
+@pytest.mark.slow
+def test_a_plan_longer_than_the_slots_moves_the_running_episodes_to_longer_slots(inputs, tmp_path, monkeypatch):
+    """Slots sized to the first plans exactly: a longer plan later makes longer slots, and the running episodes move
+    over where they stand (none starts again): the same episodes and verdicts as slots long enough from the start."""
+    import wc.expand.slot_expansion as slot_expansion
+
+    keys = dict(engine="slots", batch_size=2, target_trajectories=20, max_attempts=8, seed=1,
+                slots={**inputs[0]["expand"]["slots"], "tail_min_slots": 0, "sync_every": 2})
+    r0, out0, _ = _run(inputs, tmp_path, "long", **keys)
+    monkeypatch.setattr(slot_expansion, "FRAMES_MARGIN", 1.0)
+    r1, out1, _ = _run(inputs, tmp_path, "exact", **keys)
+    assert r0["restarts"] == 0 and r1["restarts"] >= 1
+    assert r1["slot_loads"] == r1["generated"] == r0["generated"]
+    assert sorted((e["seed"], e["reason"]) for e in r1["rejected_episodes"]) == \
+        sorted((e["seed"], e["reason"]) for e in r0["rejected_episodes"])
+    assert [out0.episode_attrs(e)["seed"] for e in out0.episode_ids] == \
+        [out1.episode_attrs(e)["seed"] for e in out1.episode_ids]
+    for e in out0.episode_ids:
+        xa, xb = out0.read_episode(e, ("x",))["x"], out1.read_episode(e, ("x",))["x"]
+        assert xa.shape == xb.shape and np.isfinite(xb).all() and np.array_equal(xa[:3], xb[:3])

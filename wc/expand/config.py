@@ -21,9 +21,11 @@ class SlotConfig:
     # episodes / this, so the replacements of its rejections need no wave of their own (1.0: exactly the wanted)
     planner_workers: int = 0  # planning processes beside the rollouts (0: in the stage's process)
     tail_min_slots: int = 16  # once nothing is left to load, the running episodes move to half as many slots while
-    # they fill at most half, down to this many (a frame's cost follows the slot count, busy or not); 0: never
+    # they fill at most half, down to this many, when the frames left outweigh a capture (a frame's cost follows the
+    # slot count, busy or not); 0: never
     bf16: bool = True  # the network in bf16 autocast (CUDA; the state stays fp32)
     cuda_graph: bool = True  # each part of a frame captured as a CUDA graph (CUDA)
+    compile_network: bool = False  # the network's step through torch.compile (CUDA; compiles once per slot count)
     iterations: int = 10  # joint projection passes (edges, contacts, self-contact) per step
     final_edge_passes: int = 20  # edge-only passes after them
     bounded_rounds: int = 2  # bounded step: distance measurements and tries at the rest of the step

@@ -9,8 +9,9 @@ writing, with the device never waiting for the host where it can be avoided.
   gives its trajectory back and takes the next planned episode; the episode's verdict is completed on the host
   (wc.expand.slot_verdicts) while the device runs the next frames, and filed in order; accepted episodes are written
   by a writer thread.
-- In the tail (nothing left to load) the running episodes move to half as many slots while they fill at most half
-  (`slots.tail_min_slots`): a frame costs the same whether its slots are busy or not.
+- In the tail (nothing left to load) the running episodes move where they stand to half as many slots while they fill
+  at most half (`slots.tail_min_slots`) and their frames left outweigh a capture: a frame costs the same whether its
+  slots are busy or not. A plan longer than the slots hold moves them to longer slots the same way.
 - Wall time per phase (planning, device wait, verdicts, loading, I/O) and device time per part of a frame
   (network, projection, untangle, checks) go into the report.
 """
@@ -104,9 +105,10 @@ class SlotExpansion:
         self.rejected: list[dict[str, Any]] = []
         self.infeasible: list[dict[str, Any]] = []
         self.timer = PhaseTimer()
-        self.restarts = 0
+        self.restarts = 0  # slots made again: for a longer plan (episodes moved over) or a neighbour overflow (restarted)
         self.shrinks = 0  # moves of the tail's episodes to fewer slots
         self._retired_part_s = dict.fromkeys(PARTS, 0.0)  # device time of rollouts replaced (restarts, shrinks)
+        self.capture_s = 0.0  # wall time of the last rebuild's capture
         self.loads = 0  # planned episodes loaded into a slot (restarts not counted)
         self.io = ThreadPoolExecutor(1)
         self._writes: list[Future[None]] = []
@@ -152,12 +154,14 @@ class SlotExpansion:
         if not taken:
             return
         self.loads += len(taken)
+        longest = max(len(r.poses) for _, r in taken)
+        if self.rollout is None or longest > self.rollout.frames:  # the running episodes move over where they stand
+            self.restarts += self.rollout is not None
+            self._rebuild(int(np.ceil(longest * FRAMES_MARGIN)), len(self.slots), taken[0][1].slot_plan())
+            free = [s for s, r in enumerate(self.slots) if r is None]
+            taken = [(free[k], r) for k, (_, r) in enumerate(taken)]
         for s, running in taken:
             self.slots[s] = running
-        longest = max(len(r.poses) for _, r in taken)
-        if self.rollout is None or longest > self.rollout.frames:
-            self._new_rollout(int(np.ceil(longest * FRAMES_MARGIN)))  # every running episode starts again
-            return
         with self.timer.phase("loading"):
             self.rollout.load([s for s, _ in taken], [r.slot_plan() for _, r in taken])
 
@@ -223,25 +227,32 @@ class SlotExpansion:
                 self.on_filed(self)
 
     # -- the loop --
-    def _new_rollout(self, frames: int) -> None:
-        """Slots for episodes of up to `frames` frames; the running episodes start again from frame 0."""
+    def _rebuild(self, frames: int, size: int, park: SlotPlan) -> None:
+        """New slots (`size` of up to `frames` frames, the current neighbour capacities), their graphs captured on
+        slots parked on park's frame 0; the running episodes move to the first slots where they stand."""
+        previous = self.rollout
+        running = [s for s, r in enumerate(self.slots) if r is not None]
+        started = time.perf_counter()
         with self.timer.phase("capture"):
-            previous = self.rollout
-            self.rollout = self.make_rollout(frames, len(self.slots))
+            self.rollout = self.make_rollout(frames, size)
             if previous is not None:
-                self.restarts += 1
-                self._retire_rollout(previous)
                 self.rollout.grow_capacities([], previous.capacities)
-        self._capture()
-
-    def _retire_rollout(self, rollout: SlotRollout) -> None:
-        """Keep a replaced rollout's device time (its frames' events already read)."""
-        for k, v in rollout.part_s.items():
-            self._retired_part_s[k] += v
+            every, parked = list(range(size)), [SlotPlan(park.x0, park.poses[:1])] * size
+            self.rollout.load(every, parked)
+            self.rollout.capture()
+            self.rollout.load(every, parked)  # the capture's warm-up advanced them
+            if running:
+                self.rollout.adopt(previous, running)
+        self.capture_s = time.perf_counter() - started
+        if previous is not None:
+            for k, v in previous.part_s.items():  # its frames' events were read at the last sync
+                self._retired_part_s[k] += v
+        self.slots = [self.slots[s] for s in running] + [None] * (size - len(running))
 
     def _shrink_tail(self) -> None:
         """Nothing left to load (queue empty, no proposal due): the running episodes move, where they stand, to half
-        as many slots while they fill at most half of them, down to slots.tail_min_slots."""
+        as many slots while they fill at most half of them, down to slots.tail_min_slots, when the frames still to
+        run would save more than a capture costs (a frame's saving taken as a quarter of its measured cost)."""
         least = self.cfg.slots.tail_min_slots
         if least == 0 or self.queue or self._may_propose():
             return
@@ -251,18 +262,12 @@ class SlotExpansion:
             size //= 2
         if not busy or size == len(self.slots):
             return
-        previous = self.rollout
-        with self.timer.phase("capture"):
-            self.rollout = self.make_rollout(previous.frames, size)
-            self.rollout.grow_capacities([], previous.capacities)
-            parked = [self.slots[busy[0]].slot_plan()] * size
-            parked = [SlotPlan(p.x0, p.poses[:1]) for p in parked]
-            self.rollout.load(list(range(size)), parked)
-            self.rollout.capture()
-            self.rollout.load(list(range(size)), parked)  # the capture's warm-up advanced them
-            self.rollout.adopt(previous, busy)
-        self._retire_rollout(previous)
-        self.slots = [self.slots[s] for s in busy] + [None] * (size - len(busy))
+        t = self.rollout.t.cpu().numpy()  # the device is idle here: the last sync was just read
+        left = max(len(self.slots[s].poses) - 1 - int(t[s]) for s in busy)
+        frame_s = sum(self.rollout.part_s.values()) / max(1, self.rollout.advanced)
+        if left * frame_s / 4 <= self.capture_s:
+            return
+        self._rebuild(self.rollout.frames, size, self.slots[busy[0]].slot_plan())
         self.shrinks += 1
 
     def _restart(self, overflow: dict[str, int]) -> None:

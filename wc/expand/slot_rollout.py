@@ -24,7 +24,7 @@ from wc.expand.fixed_projection import FixedStepProjection
 from wc.expand.frame_checks import FRAME_CHECKS, NEVER, FirstFailures, FrameChecks
 from wc.model.layout import SceneLayout
 from wc.model.padded_neighbors import NeighborCapacity
-from wc.model.rollout import frame_step
+from wc.model.rollout import compiled, frame_step
 from wc.model.worldcontact import WorldContact
 
 PARTS = ("network", "projection", "untangle", "checks")  # the timed parts of a frame, in order
@@ -46,12 +46,13 @@ class SlotRollout:
     def __init__(self, model: WorldContact, layout: SceneLayout, projection: torch.nn.Module | None,
                  capacities: dict[str, NeighborCapacity], fixed: FixedStepProjection, checks: FrameChecks,
                  link_columns: list[int], dt: float, batch: int, frames: int, every: int, *, bf16: bool,
-                 cuda_graph: bool) -> None:
+                 cuda_graph: bool, compile_network: bool = False) -> None:
         self.model, self.layout, self.topology, self.capacities = model, layout, projection, dict(capacities)
         self.fixed, self.checks, self.dt, self.batch, self.frames, self.every = fixed, checks, dt, batch, frames, every
         self.device = layout.attributes.device
         self.bf16 = bf16 and self.device.type == "cuda"
         self.use_graphs = cuda_graph and self.device.type == "cuda"
+        self.compile_network = compile_network and self.device.type == "cuda"
         self.link_columns = torch.as_tensor(link_columns, device=self.device)
         n, p = layout.num_vertices, len(layout.bodies)
         z = dict(device=self.device)
@@ -72,6 +73,7 @@ class SlotRollout:
         self._events: list[torch.cuda.Event] = []
         self._pending: list[list[torch.cuda.Event]] = []
         self.part_s = dict.fromkeys(PARTS, 0.0)  # device time per part (CUDA: read at `read_failures`)
+        self.advanced = 0  # frames advanced
 
     def _build_network(self) -> None:
         """CUDA: the static-shape step (fixed-K neighbours, capturable); the CPU: the Verlet-skin neighbour cache
@@ -80,6 +82,8 @@ class SlotRollout:
         self.neighbors = self.model.fixed_neighbors(self.layout, self.capacities) if static else None
         cache = None if static else self.model.neighbor_cache(self.layout)
         self.net = frame_step(self.model, self.layout, self.dt, self.topology, self.neighbors or cache)
+        if self.compile_network:  # Inductor fuses the step's small kernels; compiled once per slot count
+            self.net = compiled(self.net, dynamic=False)
 
     # -- the four parts of a frame, each on persistent buffers (capturable) --
     def _network(self) -> None:
@@ -146,6 +150,7 @@ class SlotRollout:
 
     def advance(self, frames: int) -> None:
         """Every slot `frames` frames on (asynchronous on CUDA)."""
+        self.advanced += frames
         for _ in range(frames):
             if self._graphs is None:
                 for name, part in zip(PARTS, self._parts()):
@@ -194,14 +199,19 @@ class SlotRollout:
 
     def adopt(self, other: SlotRollout, slots: list[int]) -> None:
         """Slots 0..k-1 take over the episodes in `other`'s `slots` where they stand (state, frame counter, poses,
-        trajectory so far, first failures); slots of this rollout from k on keep what they hold."""
-        if len(slots) > self.batch or other.frames != self.frames:
+        trajectory so far, first failures); slots of this rollout from k on keep what they hold. Its slots may hold
+        longer episodes than other's (poses padded by their last one)."""
+        if len(slots) > self.batch or other.frames > self.frames:
             raise ValueError(f"{len(slots)} episodes of {other.frames} frames do not fit {self.batch} slots of "
                              f"{self.frames}")
         index = torch.as_tensor(slots, dtype=torch.long, device=self.device)
-        k = len(slots)
-        for name in ("x", "v", "poses", "traj_x", "traj_v", "t", "length"):
+        k, f = len(slots), other.frames
+        for name in ("x", "v", "t", "length"):
             getattr(self, name)[:k] = getattr(other, name)[index]
+        for name in ("poses", "traj_x", "traj_v"):
+            getattr(self, name)[:k, :f] = getattr(other, name)[index]
+        self.poses[:k, f:] = other.poses[index, f - 1:f]
+        self.traj_x[:k, f:], self.traj_v[:k, f:] = float("nan"), float("nan")
         self.failures.frames[:k] = other.failures.frames[index]
         self.fixed.prepare(self.x)
 

@@ -77,7 +77,7 @@ class SlotModel:
                            self.capacities, self.fixed, self.checks, self.link_columns, self.dt,
                            batch or self.cfg.batch_size,
                            frames, self.validate_cfg.self_intersection_every, bf16=self.cfg.slots.bf16,
-                           cuda_graph=self.cfg.slots.cuda_graph)
+                           cuda_graph=self.cfg.slots.cuda_graph, compile_network=self.cfg.slots.compile_network)
 
 
 def run_slots(model: SlotModel, pool: PlanPool, task: Task, scene: Scene, sources: list[SourceEpisode], wanted: int,

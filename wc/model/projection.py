@@ -116,6 +116,8 @@ class TopologyProjection(nn.Module):
         its own graph (a whole static rollout step): a graph cannot be replayed during a capture, so the projection's
         kernels are captured into the caller's.
         """
+        if torch.compiler.is_compiling():  # inside a caller's compiled step: its kernels are the caller's
+            return self.project(x_prev, x_pred)
         capturing = x_pred.is_cuda and torch.cuda.is_current_stream_capturing()  # inside a caller's graph: no replay
         if self.cuda_graph and x_pred.is_cuda and not torch.is_grad_enabled() and not capturing:
             return self._graphed(x_prev, x_pred)
