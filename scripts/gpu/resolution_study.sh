@@ -1,6 +1,6 @@
 #!/bin/bash
-# How fine a bag the scene needs: benchmarks.resolution on the GPU, the same lift_handle plans in Newton at each bag
-# resolution (RESOLUTIONS, each VERTICES[:key=value,...]: the finer bags with their time step, contact radii and pinch
+# How fine a bag the scene needs: benchmarks.resolution on the GPU, the same TASK plans (default lift_handle; NAME names
+# the report, e.g. h200_bag_drop) in Newton at each bag resolution (RESOLUTIONS, each VERTICES[:key=value,...]: the finer bags with their time step, contact radii and pinch
 # scaled to their edges), PLANS plans (default 32), WORLDS worlds per batch (default 64), ITERATIONS VBD iterations
 # (default 20: converged lifts at 306 vertices). Run in the background (hold_lib.sh `background`) once the packages and
 # kernels are in place (hold_lib.sh `unpack_wheels`); progress in /tmp/run/steps.log, the report in
@@ -17,6 +17,6 @@ for r in "${RESOLUTIONS[@]}"; do ARGS+=(--resolution "$r"); done
 step "resolution study start: ${RESOLUTIONS[*]}"
 timeout ${STUDY_TIMEOUT:-1500} python -m benchmarks.resolution --params params.yaml --set sim.device=cuda \
   --set validate.device=cuda --set sim.iterations=${ITERATIONS:-20} --set sim.worlds=${WORLDS:-64} \
-  --task lift_handle --plans ${PLANS:-32} "${ARGS[@]}" --out $OUT/resolution_${NAME:-h200}.json > $R/resolution.log 2>&1
+  --task ${TASK:-lift_handle} --plans ${PLANS:-32} "${ARGS[@]}" --out $OUT/resolution_${NAME:-h200}.json > $R/resolution.log 2>&1
 step "resolution study rc=$? $(tr '\r' '\n' < $R/resolution.log | grep "vertices:" | tr '\n' ' ')"
 step "DONE"
