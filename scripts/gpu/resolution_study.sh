@@ -1,7 +1,7 @@
 #!/bin/bash
 # How fine a bag the scene needs: benchmarks.resolution on the GPU, the same TASK plans (default lift_handle; NAME names
-# the report, e.g. h200_bag_drop) in Newton at each bag resolution (RESOLUTIONS, each VERTICES[:key=value,...]: the finer bags with their time step, contact radii and pinch
-# scaled to their edges), PLANS plans (default 32), WORLDS worlds per batch (default 64), ITERATIONS VBD iterations
+# the report, e.g. h200_bag_drop) in Newton at each bag resolution (RESOLUTIONS, each VERTICES[:key=value,...]: the
+# finer bags with their time step, contact radii and pinch scaled to their edges), PLANS plans (default 32), WORLDS worlds per batch (default 64), ITERATIONS VBD iterations
 # (default 20: converged lifts at 306 vertices). Run in the background (hold_lib.sh `background`) once the packages and
 # kernels are in place (hold_lib.sh `unpack_wheels`); progress in /tmp/run/steps.log, the report in
 # $OUT/resolution_$NAME.{json,md,png}.
