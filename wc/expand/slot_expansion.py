@@ -237,10 +237,7 @@ class SlotExpansion:
             self.rollout = self.make_rollout(frames, size)
             if previous is not None:
                 self.rollout.grow_capacities([], previous.capacities)
-            every, parked = list(range(size)), [SlotPlan(park.x0, park.poses[:1])] * size
-            self.rollout.load(every, parked)
-            self.rollout.capture()
-            self.rollout.load(every, parked)  # the capture's warm-up advanced them
+            self._capture(park)
             if running:
                 self.rollout.adopt(previous, running)
         self.capture_s = time.perf_counter() - started
@@ -274,19 +271,19 @@ class SlotExpansion:
         """After a neighbour overflow: larger capacities, and the running episodes from their first frame."""
         self.restarts += 1
         self.rollout.grow_capacities(sorted(overflow))
-        self._capture()
-
-    def _capture(self) -> None:
-        """Every slot loaded (idle ones parked on a running episode's frame 0), the graphs captured, then the running
-        episodes loaded again from their first frame (the capture's warm-up advanced them)."""
         busy = [s for s, r in enumerate(self.slots) if r is not None]
-        idle = [s for s, r in enumerate(self.slots) if r is None]
         plans = [self.slots[s].slot_plan() for s in busy]
-        parked = [SlotPlan(plans[0].x0, plans[0].poses[:1])] * len(idle)
         with self.timer.phase("capture"):
-            self.rollout.load(busy + idle, plans + parked)
-            self.rollout.capture()
-            self.rollout.load(busy + idle, plans + parked)
+            self._capture(plans[0])
+            self.rollout.load(busy, plans)
+
+    def _capture(self, park: SlotPlan) -> None:
+        """The rollout's graphs captured on every slot parked on park's frame 0, and parked again afterwards (the
+        capture's warm-up advanced them)."""
+        every, parked = list(range(self.rollout.batch)), [SlotPlan(park.x0, park.poses[:1])] * self.rollout.batch
+        self.rollout.load(every, parked)
+        self.rollout.capture()
+        self.rollout.load(every, parked)
 
     def _keep_busy(self) -> None:
         """File, propose and fill until a slot runs or nothing more can be proposed or planned; episodes still to be
