@@ -1,13 +1,13 @@
-"""The slot engine's frame on a device: captured as CUDA graphs against run eagerly (the same trajectories), and its
-cost per frame against the number of slots.
+"""The slot engine's frame on a device: captured as CUDA graphs (and compiled, with expand.slots.compile_*) against
+run eagerly and uncompiled (the same trajectories), and its cost per frame against the number of slots.
 
     python -m benchmarks.expand_smoke [--params params.yaml] [--set key=value ...] [--device cuda]
         [--model models/pretrained/worldcontact-lift-handle] [--slots 4,64,128,256] [--frames 40] --out FILE.json
 
 The shipped model rolls out the params' bag at rest on the table under a scripted reach of the right arm (its frame-0
-posture held, then a lift), in every slot; the first slot count runs with and without graphs and the largest
-difference between the two trajectories is reported; every count is timed after a warm-up (ms per frame, slot-frames
-per second, the parts of a frame). No Newton, no trajectory store beyond the scene's: a minute on a bare GPU machine.
+posture held, then a lift), in every slot; the first slot count also runs eagerly, nothing captured or
+compiled, and the largest difference between the two trajectories is reported; every count is timed after a warm-up
+(ms per frame, slot-frames per second, the parts of a frame). No Newton, no trajectory store beyond the scene's: a minute on a bare GPU machine.
 """
 
 from __future__ import annotations
@@ -17,7 +17,6 @@ import tempfile
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -81,10 +80,12 @@ def slot_models(params: dict[str, Any], model_dir: str, frames: int) -> Iterator
         store = TrajectoryStore(path)
         source = SourceEpisode("none", 0, plan.x0, {}, plan.x0)
 
-        def make(slots: int) -> SlotModel:
-            params["expand"]["batch_size"] = slots
-            return SlotModel(params, Path(model_dir), scene, store, [source],
-                             load_section(params, "expand", ExpandConfig), load_section(params, "validate", ValidateConfig))
+        def make(slots: int, **slot_keys: Any) -> SlotModel:
+            expand_params = {**params["expand"], "batch_size": slots,
+                             "slots": {**params["expand"].get("slots", {}), **slot_keys}}
+            return SlotModel({**params, "expand": expand_params}, Path(model_dir), scene, store, [source],
+                             load_section({"expand": expand_params}, "expand", ExpandConfig),
+                             load_section(params, "validate", ValidateConfig))
 
         yield plan, make
 
@@ -108,10 +109,12 @@ def main(argv: list[str] | None = None) -> None:
             row = {"slots": slots, "ms_per_frame": 1e3 * wall / (args.frames - 1),
                    "slot_frames_per_s": slots * (args.frames - 1) / wall, "graphs": graphed.use_graphs,
                    "parts_s": dict(graphed.part_s), "finite": bool(np.isfinite(x_graph).all())}
-            if k == 0:
-                model.cfg = replace(model.cfg, slots=replace(model.cfg.slots, cuda_graph=False))
-                _, x_eager = _timed(model.rollout(args.frames), plan, args.frames)
+            if k == 0:  # the reference: every part run eagerly, nothing compiled
+                eager = make(slots, cuda_graph=False, compile_network=False, compile_projection=False)
+                _, x_eager = _timed(eager.rollout(args.frames), plan, args.frames)
                 row["max_graph_vs_eager_m"] = float(np.nanmax(np.abs(x_graph - x_eager)))
+                row["compiled"] = {k: getattr(model.cfg.slots, k) for k in ("compile_network", "compile_projection")}
+                del eager
             rows.append(row)
             print(row, flush=True)
             write_json_atomic(args.out, {"benchmark": "expand_smoke", "device": args.device, "frames": args.frames,

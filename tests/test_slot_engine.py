@@ -5,6 +5,7 @@ invariants, and its static-shape helpers."""
 from __future__ import annotations
 
 import copy
+from dataclasses import replace
 import time
 from pathlib import Path
 from typing import Any
@@ -20,7 +21,9 @@ from wc.data.store import TrajectoryStore
 from wc.expand import expand
 from wc.expand.body_contacts import DeviceBodies, horn_rotation, push_out
 from wc.expand.cloth_elements import compact
+from wc.expand.config import ExpandConfig
 from wc.expand.fixed_projection import FixedProjectionConfig, FixedStepProjection
+from wc.expand.slot_rollout import SlotPlan
 from wc.expand.frame_checks import FRAME_CHECKS, FrameChecks
 from wc.scene.config import SceneConfig
 from wc.scene.scene import build_scene
@@ -264,7 +267,6 @@ def test_the_static_pair_path_equals_the_exact_one_when_the_capacity_suffices_an
     """The bounded step's CUDA path (fixed passes, pairs compacted into a static pool of capacity x slots) run on the
     CPU: with room for every near pair it moves the cloth exactly as the CPU's exact path; with too little room the
     overflow is counted and the pairs left out stay over their bound (what made lifts slip on the GPU)."""
-    from dataclasses import replace
 
     import wc.expand.fixed_untangle as fixed_untangle
 
@@ -334,3 +336,53 @@ def test_a_plan_longer_than_the_slots_moves_the_running_episodes_to_longer_slots
     for e in out0.episode_ids:
         xa, xb = out0.read_episode(e, ("x",))["x"], out1.read_episode(e, ("x",))["x"]
         assert xa.shape == xb.shape and np.isfinite(xb).all() and np.array_equal(xa[:3], xb[:3])
+
+
+@pytest.mark.slow
+def test_the_compiled_joint_passes_trace_whole_and_give_the_eager_passes_result(scene, monkeypatch):
+    """The CUDA path (fixed passes, capacity-compacted pairs) on the CPU: torch.compile(fullgraph) of the joint and edge
+    passes traces without a graph break and changes no result."""
+    from wc.expand import body_contacts, fixed_projection  # noqa: PLC0415
+
+    for module in (body_contacts, fixed_projection):
+        monkeypatch.setattr(module, "host_checks", lambda t: False)
+    x_prev, x, links = _perturbed(scene, 2, 0.004)
+    v = (x - x_prev) / 0.04
+    results = []
+    for compile_passes in (False, True):
+        torch._dynamo.reset()
+        fixed = FixedStepProjection(scene, replace(CONFIG, iterations=3, final_edge_passes=2), torch.device("cpu"))
+        if compile_passes:
+            fixed.compile_passes(backend="aot_eager")
+        fixed.prepare(x_prev)
+        results.append(fixed.joint(x_prev, x.clone(), v.clone(), links, 0.04))
+        results.append(fixed.joint(x_prev, results[-1][0], results[-1][1], links, 0.04))  # a second call: no retrace
+    for (eager_x, eager_v), (compiled_x, compiled_v) in zip(results[:2], results[2:]):
+        assert float(fixed.strain(eager_x).max()) < float(fixed.strain(x).max())  # the passes did something
+        torch.testing.assert_close(compiled_x, eager_x, atol=1e-6, rtol=0)
+        torch.testing.assert_close(compiled_v, eager_v, atol=1e-5, rtol=0)
+
+
+def test_rollouts_of_the_same_slots_and_capacities_share_one_network_step(inputs):
+    """A longer plan's new slots reuse the network step (compiled once when compile_network is on); another slot
+    count gets its own; a rollout on the shared step runs."""
+    from wc.expand.plan import source_episodes  # noqa: PLC0415
+    from wc.scene.episode_scenes import EpisodeScenes  # noqa: PLC0415
+    from wc.expand.slot_stage import SlotModel  # noqa: PLC0415
+    from wc.model.prescribed_inputs import KinematicInputs  # noqa: PLC0415
+    from wc.tasks.base import get_task  # noqa: PLC0415
+
+    params, store, model_dir = inputs
+    cfg = load_section(params, "expand", ExpandConfig)
+    src = TrajectoryStore(store)
+    sources, scene = source_episodes(src, get_task(cfg.task, params),
+                                     EpisodeScenes(load_section(params, "scene", SceneConfig), src), cfg.max_sources)
+    model = SlotModel(params, Path(model_dir), scene, src, sources, replace(cfg, batch_size=2),
+                      load_section(params, "validate", ValidateConfig))
+    first, longer, fewer = model.rollout(6), model.rollout(12), model.rollout(6, batch=1)
+    assert longer.net is first.net and fewer.net is not first.net and len(model.steps) == 2
+    home = np.repeat(scene.home_action()[None, None], 12, axis=1)
+    plan = SlotPlan(sources[0].x0, KinematicInputs(scene).poses(home)[0])
+    longer.load([0, 1], [plan, plan])
+    longer.advance(3)
+    assert longer.read_failures()[0].tolist() == [3, 3]

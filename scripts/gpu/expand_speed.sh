@@ -7,10 +7,12 @@
 # 32,64,128), SLOTS (expand.batch_size, default 128), PLANNERS (planning processes, default 8), NEWTON_S (measured
 # Newton seconds per worlds count, default 45), TARGET (expand.target_trajectories of the timed expansion, sources
 # included, default 150), TEACHER (generated plans replayed in Newton, default 64), EXTRA (more --set overrides), NAME
-# (report name, default the GPU's model: h100, h200). PROBE_PLANS > 0: afterwards, Newton alone replays that many
-# lift_handle plans under each probe setting (benchmarks/fabric_stretch.py: verdicts, edge stretch, s per episode;
-# PROBE_SETTINGS, one setting, replaces the default list: the bag at ~300, ~1,200, ~2,500 and ~5,000 vertices, the
-# finest with the paper scale's contact radii, and the stiffer membrane with the idle arm parked) into fabric_stretch_<NAME>.{json,md,png}.
+# (report name, default the GPU's model: h100, h200), SMOKE_SLOTS and SMOKE_FRAMES (the smoke's slot counts, default
+# 4,64,128,256: with compile_* each count compiles, ~2 min; and frames, default 40; EXTRA applies to it too).
+# PROBE_PLANS > 0: afterwards, Newton alone replays that many lift_handle plans under each probe setting
+# (benchmarks/fabric_stretch.py: verdicts, edge stretch, s per episode; PROBE_SETTINGS, one setting, replaces the
+# default list: the bag at ~300, ~1,200, ~2,500 and ~5,000 vertices, the finest with the paper scale's contact radii,
+# and the stiffer membrane with the idle arm parked) into fabric_stretch_<NAME>.{json,md,png}.
 cd "$(dirname "$0")/../.."
 export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1
 R=/tmp/expand_speed; mkdir -p $R "${OUT:-$R/out}"
@@ -22,7 +24,8 @@ case "$1" in
     cat /tmp/gpu/part-* | xz -dc -T0 | tar x -C / || exit 1
     mkdir -p ~/.cache/warp && xz -dc scripts/gpu/kernel_cache/warp-1.19.0_newton-1.8.0_sm90.tar.xz | tar x -C ~/.cache/warp --skip-old-files
     nvidia-smi --query-gpu=name,memory.used --format=csv
-    python3 -m benchmarks.expand_smoke --device cuda --out $R/smoke.json || exit 1
+    python3 -m benchmarks.expand_smoke --device cuda ${EXTRA:-} --slots ${SMOKE_SLOTS:-4,64,128,256} \
+      --frames ${SMOKE_FRAMES:-40} --out $R/smoke.json || exit 1
     cp $R/smoke.json "$OUT"/ 2>/dev/null
     PARKED="scene.robot.left_base_xyz_yaw_deg=[-0.75, 0.0, 0.0, 0.0]"
     [ -n "${PROBE_SETTINGS+x}" ] || PROBE_SETTINGS=("scene.bag.target_vertices=300" "scene.bag.target_vertices=1200"

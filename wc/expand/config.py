@@ -22,10 +22,11 @@ class SlotConfig:
     planner_workers: int = 0  # planning processes beside the rollouts (0: in the stage's process)
     tail_min_slots: int = 16  # once nothing is left to load, the running episodes move to half as many slots while
     # they fill at most half, down to this many, when the frames left outweigh a capture (a frame's cost follows the
-    # slot count, busy or not); 0: never
+    # slot count, busy or not); 0: never; nor with compile_* on (a new slot count compiles again)
     bf16: bool = True  # the network in bf16 autocast (CUDA; the state stays fp32)
     cuda_graph: bool = True  # each part of a frame captured as a CUDA graph (CUDA)
     compile_network: bool = False  # the network's step through torch.compile (CUDA; compiles once per slot count)
+    compile_projection: bool = False  # the joint projection's passes through torch.compile (CUDA; once per slot count)
     iterations: int = 10  # joint projection passes (edges, contacts, self-contact) per step
     final_edge_passes: int = 20  # edge-only passes after them
     bounded_rounds: int = 2  # bounded step: distance measurements and tries at the rest of the step

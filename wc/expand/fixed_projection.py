@@ -102,6 +102,7 @@ class FixedStepProjection:
         self.rollback = Rollback(self.elements, max(1, cfg.rollback_rounds), max(1, cfg.rollback_full_from))
         self.bvh: ClothBVH | None = None
         self.stats = self.zero_stats()
+        self._iteration, self._edge_pass = self._one_iteration, edge_pass
 
     def zero_stats(self) -> dict[str, Tensor]:
         return {k: torch.zeros((), dtype=torch.float32 if k.startswith("max") else torch.long, device=self.device)
@@ -161,6 +162,28 @@ class FixedStepProjection:
         b, vi = idx // (q * k), (idx // k) % q
         return b, el.vertices[vi], el.faces[slots.reshape(-1)[idx].clamp_min(0).long()], valid
 
+    def _one_iteration(self, x_prev: Tensor, out: Tensor, inv_mass: Tensor, edge_shift: Tensor, pushed: Tensor,
+                       normal: Tensor, bodies: list, pairs: tuple[Tensor, ...] | None) -> None:
+        """One joint pass, in place on out, edge_shift, pushed and normal: edges, the push out of the bodies, the
+        self-contact separation."""
+        cloth = self.bodies.cloth
+        self._edge_pass(out, inv_mass, self.colours, self.lo, self.hi, edge_shift)
+        if len(cloth):
+            moved, hit = push_out(out[:, cloth], bodies)
+            delta = moved - out[:, cloth]
+            out[:, cloth] = moved
+            pushed[:, cloth] |= hit
+            normal[:, cloth] = torch.where(hit[..., None], delta / delta.norm(dim=-1, keepdim=True).clamp_min(1e-12),
+                                           normal[:, cloth])
+        if pairs is not None:
+            separate_pairs(x_prev, out, *pairs, inv_mass, self.cfg.self_contact_gap_m)
+
+    def compile_passes(self, backend: str = "inductor") -> None:
+        """The joint pass and the edge pass through torch.compile (fullgraph, static shapes: once per batch size):
+        Inductor fuses their many small kernels; the results are the same passes'. For the static path (CUDA)."""
+        self._iteration = torch.compile(self._one_iteration, fullgraph=True, dynamic=False, backend=backend)
+        self._edge_pass = torch.compile(edge_pass, fullgraph=True, dynamic=False, backend=backend)
+
     @torch.no_grad()
     def joint(self, x_prev: Tensor, x: Tensor, v: Tensor, link_poses: Tensor, dt: float) -> tuple[Tensor, Tensor]:
         """Part 1 (module docstring): edges, contacts and self-contact of a predicted step x, v (B, N, 3) from x_prev
@@ -168,7 +191,6 @@ class FixedStepProjection:
         if self.bvh is None:
             raise RuntimeError("fixed projection: call prepare(x) with the batch's states first")
         cfg, s = self.cfg, self.stats
-        cloth = self.bodies.cloth
         bodies = self.bodies.pose(link_poses, x)
         self._keep_max("max_strain_before", self.strain(x))
         self._keep_max("max_depth_before_m", self.bodies.depth(x, bodies))
@@ -180,22 +202,13 @@ class FixedStepProjection:
         pairs = self._self_contact_pairs(x) if self.skip is not None else None
         for _ in range(cfg.iterations):
             before = out.clone() if host_checks(x) else None
-            edge_pass(out, inv_mass, self.colours, self.lo, self.hi, edge_shift)
-            if len(cloth):
-                moved, hit = push_out(out[:, cloth], bodies)
-                delta = moved - out[:, cloth]
-                out[:, cloth] = moved
-                pushed[:, cloth] |= hit
-                normal[:, cloth] = torch.where(hit[..., None], delta / delta.norm(dim=-1, keepdim=True).clamp_min(1e-12),
-                                               normal[:, cloth])
-            if pairs is not None:
-                separate_pairs(x_prev, out, *pairs, inv_mass, cfg.self_contact_gap_m)
+            self._iteration(x_prev, out, inv_mass, edge_shift, pushed, normal, bodies, pairs)
             if before is not None and not bool((torch.nan_to_num(out - before).abs() > SETTLED_M).any()):
                 break  # the CPU stops once a pass moves nothing; CUDA runs its passes (a captured graph)
         for _ in range(cfg.final_edge_passes):
             if host_checks(x) and not bool((self.edge_violation(out) > SETTLED_M).any()):
                 break
-            edge_pass(out, inv_mass, self.colours, self.lo, self.hi, edge_shift)
+            self._edge_pass(out, inv_mass, self.colours, self.lo, self.hi, edge_shift)
         v_out = v + edge_shift / dt
         inward = (v_out * normal).sum(-1, keepdim=True).clamp_max(0.0)
         s["steps"] += 1

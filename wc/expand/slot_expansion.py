@@ -11,7 +11,8 @@ writing, with the device never waiting for the host where it can be avoided.
   by a writer thread.
 - In the tail (nothing left to load) the running episodes move where they stand to half as many slots while they fill
   at most half (`slots.tail_min_slots`) and their frames left outweigh a capture: a frame costs the same whether its
-  slots are busy or not. A plan longer than the slots hold moves them to longer slots the same way.
+  slots are busy or not (not when compiling: a new slot count would compile again). A plan longer than the slots
+  hold moves them to longer slots the same way.
 - Wall time per phase (planning, device wait, verdicts, loading, I/O) and device time per part of a frame
   (network, projection, untangle, checks) go into the report.
 """
@@ -250,8 +251,9 @@ class SlotExpansion:
         """Nothing left to load (queue empty, no proposal due): the running episodes move, where they stand, to half
         as many slots while they fill at most half of them, down to slots.tail_min_slots, when the frames still to
         run would save more than a capture costs (a frame's saving taken as a quarter of its measured cost)."""
-        least = self.cfg.slots.tail_min_slots
-        if least == 0 or self.queue or self._may_propose():
+        least, slots = self.cfg.slots.tail_min_slots, self.cfg.slots
+        compiling = self.rollout.device.type == "cuda" and (slots.compile_network or slots.compile_projection)
+        if least == 0 or compiling or self.queue or self._may_propose():
             return
         busy = [s for s, r in enumerate(self.slots) if r is not None]
         size = len(self.slots)

@@ -24,7 +24,7 @@ from wc.expand.fixed_projection import FixedStepProjection
 from wc.expand.frame_checks import FRAME_CHECKS, NEVER, FirstFailures, FrameChecks
 from wc.model.layout import SceneLayout
 from wc.model.padded_neighbors import NeighborCapacity
-from wc.model.rollout import compiled, frame_step
+from wc.model.rollout import Step, compiled, frame_step
 from wc.model.worldcontact import WorldContact
 
 PARTS = ("network", "projection", "untangle", "checks")  # the timed parts of a frame, in order
@@ -46,13 +46,15 @@ class SlotRollout:
     def __init__(self, model: WorldContact, layout: SceneLayout, projection: torch.nn.Module | None,
                  capacities: dict[str, NeighborCapacity], fixed: FixedStepProjection, checks: FrameChecks,
                  link_columns: list[int], dt: float, batch: int, frames: int, every: int, *, bf16: bool,
-                 cuda_graph: bool, compile_network: bool = False) -> None:
+                 cuda_graph: bool, compile_network: bool = False, steps: dict[tuple[int, str], Step] | None = None
+                 ) -> None:
         self.model, self.layout, self.topology, self.capacities = model, layout, projection, dict(capacities)
         self.fixed, self.checks, self.dt, self.batch, self.frames, self.every = fixed, checks, dt, batch, frames, every
         self.device = layout.attributes.device
         self.bf16 = bf16 and self.device.type == "cuda"
         self.use_graphs = cuda_graph and self.device.type == "cuda"
         self.compile_network = compile_network and self.device.type == "cuda"
+        self.steps = {} if steps is None else steps  # network steps by (slot count, capacities), shared by rollouts
         self.link_columns = torch.as_tensor(link_columns, device=self.device)
         n, p = layout.num_vertices, len(layout.bodies)
         z = dict(device=self.device)
@@ -80,10 +82,13 @@ class SlotRollout:
         (the same pairs, searched as needed: cheaper there, and nothing is captured)."""
         static = self.device.type == "cuda"
         self.neighbors = self.model.fixed_neighbors(self.layout, self.capacities) if static else None
-        cache = None if static else self.model.neighbor_cache(self.layout)
-        self.net = frame_step(self.model, self.layout, self.dt, self.topology, self.neighbors or cache)
-        if self.compile_network:  # Inductor fuses the step's small kernels; compiled once per slot count
-            self.net = compiled(self.net, dynamic=False)
+        key = (self.batch, repr(sorted(self.capacities.items())))
+        if key not in self.steps:  # a rollout of the same slots and capacities (a longer plan's) reuses the step
+            cache = None if static else self.model.neighbor_cache(self.layout)
+            step = frame_step(self.model, self.layout, self.dt, self.topology, self.neighbors or cache)
+            # Inductor fuses the step's small kernels; compiled once per slot count
+            self.steps[key] = compiled(step, dynamic=False) if self.compile_network else step
+        self.net = self.steps[key]
 
     # -- the four parts of a frame, each on persistent buffers (capturable) --
     def _network(self) -> None:

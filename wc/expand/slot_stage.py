@@ -63,7 +63,10 @@ class SlotModel:
         self.link_columns = [self.layout.bodies.index(n) for n in scene.link_names]
         self.fixed = FixedStepProjection(scene, fixed_projection_config(cfg, load_section(params, "sim", SimConfig)),
                                          self.device)
+        if cfg.slots.compile_projection and self.device.type == "cuda":
+            self.fixed.compile_passes()
         self.checks = FrameChecks(scene, validate_cfg, self.fixed.bodies, self.device)
+        self.steps: dict[tuple[int, str], Any] = {}  # network steps per (slot count, capacities): compiled once
         self.capacities = self.predictor.capacities
         if self.capacities is None:
             first = src.read_window(sources[0].eid, 0, 2, ("action",))["action"]
@@ -77,7 +80,8 @@ class SlotModel:
                            self.capacities, self.fixed, self.checks, self.link_columns, self.dt,
                            batch or self.cfg.batch_size,
                            frames, self.validate_cfg.self_intersection_every, bf16=self.cfg.slots.bf16,
-                           cuda_graph=self.cfg.slots.cuda_graph, compile_network=self.cfg.slots.compile_network)
+                           cuda_graph=self.cfg.slots.cuda_graph, compile_network=self.cfg.slots.compile_network,
+                           steps=self.steps)
 
 
 def run_slots(model: SlotModel, pool: PlanPool, task: Task, scene: Scene, sources: list[SourceEpisode], wanted: int,
