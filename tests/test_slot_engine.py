@@ -67,9 +67,10 @@ def test_two_slots_take_every_episode_in_turn_and_file_them_in_order(inputs, tmp
     assert len(seeds) == r["accepted"]
     assert {"host_planning_s", "host_device_wait_s", "device_network_s", "device_projection_s",
             "device_untangle_s", "device_checks_s"} <= set(r["timing"])
-    again, out2, _ = _run(inputs, tmp_path, "again", engine="slots", batch_size=2, target_trajectories=7,
-                          max_attempts=5, seed=5)
+    again, out2, rejected2 = _run(inputs, tmp_path, "again", engine="slots", batch_size=2, target_trajectories=7,
+                                  max_attempts=5, seed=5, write_processes=1)  # written by a process this time
     assert [out2.episode_attrs(e)["seed"] for e in out2.episode_ids] == seeds  # same seed, same episodes
+    assert rejected2.episode_ids == rejected.episode_ids
     for e in out.episode_ids:
         assert np.array_equal(out.read_episode(e, ("x",))["x"], out2.read_episode(e, ("x",))["x"])
 

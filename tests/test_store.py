@@ -49,10 +49,10 @@ def _attrs(i: int, split: str | None = "train", task: str = "lift") -> dict[str,
                 accepted=True, first_failure=None, source="simulator")
 
 
-def _writer(path: Path, chunk_frames: int = 16) -> TrajectoryWriter:
+def _writer(path: Path, chunk_frames: int = 16, write_processes: int = 0) -> TrajectoryWriter:
     return TrajectoryWriter(path, dt=0.04, substeps=20, params_hash="abc123", created_by="test",
                             object_order=["bag", "cube"], link_names=LINKS, env_names=ENVS,
-                            chunk_frames=chunk_frames)
+                            chunk_frames=chunk_frames, write_processes=write_processes)
 
 
 def _add_scene(w: TrajectoryWriter) -> None:
@@ -62,9 +62,10 @@ def _add_scene(w: TrajectoryWriter) -> None:
     w.add_prescribed("right_finger_a", np.zeros((2, 3)), np.ones((2, 3)), tag=4, link="right_finger_a")
 
 
-def _make_store(path: Path, lengths=(40, 3, 20), splits=("train", "val", "train"), chunk_frames: int = 16):
+def _make_store(path: Path, lengths=(40, 3, 20), splits=("train", "val", "train"), chunk_frames: int = 16,
+                write_processes: int = 0):
     episodes = []
-    with _writer(path, chunk_frames) as w:
+    with _writer(path, chunk_frames, write_processes) as w:
         _add_scene(w)
         for i, (T, split) in enumerate(zip(lengths, splits)):
             ep = _episode(T, seed=i)
@@ -216,6 +217,27 @@ def test_exception_in_with_leaves_nothing_and_replace_is_atomic(tmp_path: Path) 
         with _writer(tmp_path / "notes"):
             pass
     assert (tmp_path / "notes" / "a.txt").exists()
+
+
+def test_write_processes_write_the_same_store_and_a_failed_write_leaves_nothing(tmp_path: Path) -> None:
+    """Episodes checked here and written by two processes: the same ids, arrays and attrs as written in this process;
+    a write that fails in a process fails the writer, and no store or temporary folder is left."""
+    here = _make_store(tmp_path / "here.zarr", lengths=(7, 3, 5, 9))
+    _make_store(tmp_path / "there.zarr", lengths=(7, 3, 5, 9), write_processes=2)
+    a, b = TrajectoryStore(tmp_path / "here.zarr"), TrajectoryStore(tmp_path / "there.zarr")
+    assert a.episode_ids == b.episode_ids == [eid for eid, _ in here]
+    for eid, ep in here:
+        assert a.episode_attrs(eid) == b.episode_attrs(eid)
+        got = b.read_episode(eid, tuple(ep))
+        for k, arr in ep.items():
+            np.testing.assert_array_equal(got[k], arr.astype(np.float32))
+    path = tmp_path / "failed.zarr"
+    with pytest.raises(OSError):
+        with _writer(path, write_processes=1) as w:
+            _add_scene(w)
+            (w._tmp / "episodes" / "ep_000000").write_text("in the way")  # a file where the episode's folder goes
+            w.add_episode(**_episode(5), **_attrs(0))
+    assert not path.exists() and _leftovers(tmp_path) == []
 
 
 def test_unwritable_output(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

@@ -4,7 +4,8 @@
 #                                            # expansion on the GPU, then the benchmark in the background
 #   bash scripts/gpu/expand_speed.sh wait    # wait up to WAIT seconds (default 540); progress and reports to $OUT
 # Settings: ITERATIONS (Newton's VBD iterations, default 20: converged lifts), WORLDS (Newton's worlds counts, default
-# 32,64,128), SLOTS (expand.batch_size, default 128), PLANNERS (planning processes, default 8), NEWTON_S (measured
+# 32,64,128), SLOTS (expand.batch_size, default 128), PLANNERS (planning processes, default 8), WRITERS (processes
+# writing the episodes, expand.write_processes, default 1), NEWTON_S (measured
 # Newton seconds per worlds count, default 45), TARGET (expand.target_trajectories of the timed expansion, sources
 # included, default 150), TEACHER (generated plans replayed in Newton, default 64), EXTRA (more --set overrides), NAME
 # (report name, default the GPU's model: h100, h200), SMOKE_SLOTS and SMOKE_FRAMES (the smoke's slot counts, default
@@ -18,7 +19,8 @@ export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1
 R=/tmp/expand_speed; mkdir -p $R "${OUT:-$R/out}"
 NAME=${NAME:-$(nvidia-smi --query-gpu=name --format=csv,noheader | head -1 | grep -o 'H[0-9][0-9]*' | head -1 | tr H h)}
 SETS=(--set sim.device=cuda --set validate.device=cuda --set expand.device=cuda --set sim.iterations=${ITERATIONS:-20}
-  --set expand.batch_size=${SLOTS:-128} --set expand.slots.planner_workers=${PLANNERS:-8} --set sim.worlds=64 ${EXTRA:-})
+  --set expand.batch_size=${SLOTS:-128} --set expand.slots.planner_workers=${PLANNERS:-8}
+  --set expand.write_processes=${WRITERS:-1} --set sim.worlds=64 ${EXTRA:-})
 case "$1" in
   start)
     cat /tmp/gpu/part-* | xz -dc -T0 | tar x -C / || exit 1

@@ -6,6 +6,7 @@ import math
 import os
 import secrets
 import shutil
+from concurrent.futures import Future, ProcessPoolExecutor
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from types import TracebackType
@@ -18,6 +19,7 @@ from wc.atomic import remove_stale_temporaries
 from wc.data.schema import (ACTION_DIM, EPISODE_ARRAYS, EPISODE_ATTRS, EPISODE_RE, KINDS, POSE_DIM, SCHEMA, SOURCES,
                             SPLITS, as_array, check_finite, check_name, check_shape, format_episode_id, jsonable,
                             subsequence, write_array)
+from wc.worker_pool import spawn_pool
 
 if TYPE_CHECKING:
     from wc.scene.scene import Scene
@@ -30,7 +32,9 @@ class TrajectoryWriter:
     and is renamed to `path` on a clean exit (an existing store at `path` is replaced); on an
     exception the temporary directory is removed (one a killed writer left is removed when the next one
     starts: wc.atomic). Call `add_object` for every name in
-    `object_order` before the first `add_episode`.
+    `object_order` before the first `add_episode`. write_processes > 0: episodes are checked here and their arrays
+    written by that many spawned processes (zarr's writes hold the interpreter: a caller with other work keeps it),
+    all finished before the store is renamed into place; the same store as written here.
     """
 
     def __init__(
@@ -46,8 +50,14 @@ class TrajectoryWriter:
         env_names: Sequence[str],
         chunk_frames: int = 16,
         units: str = "m, s",
+        write_processes: int = 0,
     ) -> None:
         self.path = Path(path)
+        if not (isinstance(write_processes, (int, np.integer)) and write_processes >= 0):
+            raise ValueError(f"write_processes must be an int >= 0, got {write_processes!r}")
+        self.write_processes = int(write_processes)
+        self._pool: ProcessPoolExecutor | None = None
+        self._pending: list[Future[None]] = []
         if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0):
             raise ValueError(f"dt must be a positive finite number of seconds, got {dt!r}")
         if not (isinstance(substeps, (int, np.integer)) and substeps >= 1):
@@ -98,6 +108,10 @@ class TrajectoryWriter:
             self._root.attrs.update(self._root_attrs)
             for g in ("objects", "prescribed", "episodes"):
                 self._root.create_group(g)
+            if self.write_processes:
+                self._pool = spawn_pool(self.write_processes)
+                for _ in range(self.write_processes):  # each process starts (imports zarr) now, not at the first episode
+                    self._pool.submit(os.getpid)
         except BaseException:
             self._abort()
             raise
@@ -122,8 +136,20 @@ class TrajectoryWriter:
         if p.is_dir() and any(p.iterdir()) and not (p / "zarr.json").is_file():
             raise FileExistsError(f"{p} is a non-empty directory that is not a zarr store; refusing to replace it")
 
+    def _drain(self, cancel: bool = False) -> None:
+        """Wait for the episodes the write processes hold (a failed write raises here; cancel: drop those not
+        started) and stop the processes."""
+        pool, pending, self._pool, self._pending = self._pool, self._pending, None, []
+        if pool is None:
+            return
+        pool.shutdown(wait=True, cancel_futures=cancel)
+        if not cancel:
+            for f in pending:
+                f.result()
+
     def _commit(self) -> None:
         assert self._tmp is not None and self._root is not None
+        self._drain()
         missing = [n for n in self.object_order if n not in self._vertex_counts]
         if missing:
             raise ValueError(f"{self.path}: objects {missing} in object_order were never added (add_object)")
@@ -144,6 +170,7 @@ class TrajectoryWriter:
             shutil.rmtree(old, ignore_errors=True)
 
     def _abort(self) -> None:
+        self._drain(cancel=True)
         if self._tmp is not None:
             shutil.rmtree(self._tmp, ignore_errors=True)
         self._tmp = self._root = None
@@ -268,10 +295,13 @@ class TrajectoryWriter:
             check_shape(k, a, shapes[k], where)
         for k, a in arrays.items():
             check_finite(k, a, where)
-        g = episodes.create_group(eid)
-        for k, a in arrays.items():
-            write_array(g, k, a, self.chunk_frames)
-        g.attrs.update(clean_attrs)
+        if self._pool is None:
+            write_episode(episodes, eid, arrays, clean_attrs, self.chunk_frames)
+        else:  # checked here, written there: the arrays travel pickled
+            while self._pending and self._pending[0].done():
+                self._pending.pop(0).result()  # a failed write stops the writer at the next episode
+            self._pending.append(self._pool.submit(_write_in_process, str(self._tmp), eid, arrays, clean_attrs,
+                                                   self.chunk_frames))
         self._episodes.add(eid)
         self._next_index = max(self._next_index, int(eid[3:]) + 1)
         return eid
@@ -293,3 +323,22 @@ class TrajectoryWriter:
         if not isinstance(out["task"], str) or not out["task"]:
             raise TypeError(f"{where}: task must be a non-empty str, got {out['task']!r}")
         return out
+
+
+def write_episode(episodes: zarr.Group, eid: str, arrays: Mapping[str, np.ndarray], attrs: Mapping[str, Any],
+                  chunk_frames: int) -> None:
+    """One checked episode's group under a store's `episodes` group."""
+    g = episodes.create_group(eid)
+    for k, a in arrays.items():
+        write_array(g, k, a, chunk_frames)
+    g.attrs.update(attrs)
+
+
+_OPEN: dict[str, zarr.Group] = {}  # a write process's open `episodes` groups, by store folder
+
+
+def _write_in_process(store: str, eid: str, arrays: Mapping[str, np.ndarray], attrs: Mapping[str, Any],
+                      chunk_frames: int) -> None:
+    if store not in _OPEN:
+        _OPEN[store] = zarr.open_group(store, mode="r+")["episodes"]
+    write_episode(_OPEN[store], eid, arrays, attrs, chunk_frames)

@@ -63,6 +63,7 @@ class ExpandConfig:
     shift_y_range_m: Range
     max_sources: int = 0  # the task's first accepted episodes in store order used as sources at most (0: all; paper: 25)
     task_check: bool = True  # also apply the task's own verdict (lift_handle: not_lifted), as the simulator agent does
+    write_processes: int = 0  # processes writing the episodes' arrays (0: a thread of the stage's process)
     # after each predicted step: "joint" projects cloth edge limits and contacts together (wc.expand.constraints),
     # "contact" only pushes cloth out of bodies (wc.expand.contact), "none" keeps the model's step
     projection: str = "joint"
@@ -102,6 +103,8 @@ class ExpandConfig:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if self.max_sources < 0:
             raise ValueError(f"max_sources must be >= 0 (0: every accepted episode), got {self.max_sources}")
+        if self.write_processes < 0:
+            raise ValueError(f"write_processes must be >= 0 (0: in the stage's process), got {self.write_processes}")
         for name in ("yaw_range_deg", "shift_x_range_m", "shift_y_range_m"):
             low, high = getattr(self, name)
             if not low <= high:

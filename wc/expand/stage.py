@@ -219,7 +219,7 @@ def expand_share(params: dict[str, Any], model_ref: str | Path, store: Path, out
         return TrajectoryWriter(path, dt=dt, substeps=int(src.attrs["substeps"]), units=src.attrs["units"],
                                 params_hash=phash, created_by="stages.expand", object_order=src.object_names,
                                 link_names=src.link_names, env_names=src.env_names,
-                                chunk_frames=src.chunk_frames(sources[0].eid))
+                                chunk_frames=src.chunk_frames(sources[0].eid), write_processes=cfg.write_processes)
 
     if cfg.engine == "slots":
         with PlanPool(params, scene, sources, cfg, dt, validate_cfg, cfg.slots.planner_workers) as pool:  # before CUDA
