@@ -63,3 +63,11 @@ def test_wrist_camera_rides_on_its_link(scene_cfg):
     np.testing.assert_allclose(view, target / np.linalg.norm(target), atol=1e-9)
     k = intrinsics(top)
     assert k[0, 2] == top.width / 2 and k[0, 0] > 0
+    frames = scene.link_poses(np.stack([a, b]))  # many frames at once: each frame's pose
+    for cam in (wrist, top):
+        eyes, rots = camera_pose(cam, scene.link_names, frames)
+        assert eyes.shape == (2, 3) and rots.shape == (2, 3, 3)
+        for t in range(2):
+            eye_t, rot_t = camera_pose(cam, scene.link_names, frames[t])
+            np.testing.assert_allclose(eyes[t], eye_t, atol=1e-12)
+            np.testing.assert_allclose(rots[t], rot_t, atol=1e-12)

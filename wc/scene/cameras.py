@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from wc.scene.config import CameraConfig
-from wc.rotations import quat_rotate
+from wc.rotations import quat_matrices
 
 
 def look_at_rotation(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
@@ -28,13 +28,17 @@ def intrinsics(cfg: CameraConfig) -> np.ndarray:
 
 
 def camera_pose(cfg: CameraConfig, link_names: tuple[str, ...], link_poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """World camera position (3,) and rotation (3, 3) given robot link poses (L, 7) of one frame."""
+    """World camera position (..., 3) and rotation (..., 3, 3) given robot link poses (..., L, 7): one frame's
+    (L, 7) or many frames' at once."""
     eye, target, up = (np.asarray(v, np.float64) for v in (cfg.position_m, cfg.look_at_m, cfg.up))
     rot = look_at_rotation(eye, target, up)
+    frames = np.shape(link_poses)[:-2]
     if cfg.link is None:
-        return eye, rot
+        if not frames:
+            return eye, rot
+        return np.broadcast_to(eye, (*frames, 3)).copy(), np.broadcast_to(rot, (*frames, 3, 3)).copy()
     if cfg.link not in link_names:
         raise ValueError(f"camera link {cfg.link!r} is not a robot body; known: {list(link_names)}")
-    pose = np.asarray(link_poses[link_names.index(cfg.link)], np.float64)
-    link_rot = np.stack([quat_rotate(pose[3:], e) for e in np.eye(3)], axis=1)
-    return pose[:3] + link_rot @ eye, link_rot @ rot
+    pose = np.asarray(link_poses, np.float64)[..., link_names.index(cfg.link), :]
+    link_rot = quat_matrices(pose[..., 3:])
+    return pose[..., :3] + link_rot @ eye, link_rot @ rot

@@ -329,18 +329,17 @@ def visible_fraction(scene: Scene, x: np.ndarray, link_poses: np.ndarray, camera
     """(T,) fraction of points x (T, N, 3) that project inside the camera's image (in front of it)."""
     cam = scene.cameras[camera]
     K = intrinsics(cam)
-    frac = np.zeros(len(x))
-    for t in range(len(x)):
-        eye, rot = camera_pose(cam, scene.link_names, link_poses[t])
-        p = (np.asarray(x[t], np.float64) - eye) @ rot  # camera frame, OpenGL: looks down -z, y up
-        depth = -p[:, 2]
-        front = depth > 1e-9
-        safe = np.where(front, depth, 1.0)
-        u = K[0, 0] * p[:, 0] / safe + K[0, 2]
-        v = K[1, 2] - K[1, 1] * p[:, 1] / safe  # image rows grow downwards
-        inside = front & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
-        frac[t] = inside.mean() if len(inside) else 1.0
-    return frac
+    if x.shape[1] == 0:
+        return np.ones(len(x))
+    eye, rot = camera_pose(cam, scene.link_names, link_poses)  # (T, 3), (T, 3, 3)
+    p = np.einsum("tni,tij->tnj", np.asarray(x, np.float64) - eye[:, None], rot)  # camera frame, OpenGL: looks down -z
+    depth = -p[..., 2]
+    front = depth > 1e-9
+    safe = np.where(front, depth, 1.0)
+    u = K[0, 0] * p[..., 0] / safe + K[0, 2]
+    v = K[1, 2] - K[1, 1] * p[..., 1] / safe  # image rows grow downwards
+    inside = front & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+    return inside.mean(axis=1)
 
 
 def out_of_view(scene: Scene, ep: Episode, cfg: ValidateConfig) -> int | None:
