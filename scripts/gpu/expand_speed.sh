@@ -7,7 +7,8 @@
 # 32,64,128), SLOTS (expand.batch_size, default 128), PLANNERS (planning processes, default 8), WRITERS (processes
 # writing the episodes, expand.write_processes, default 1), NEWTON_S (measured
 # Newton seconds per worlds count, default 45), TARGET (expand.target_trajectories of the timed expansion, sources
-# included, default 150), TEACHER (generated plans replayed in Newton, default 64), EXTRA (more --set overrides), NAME
+# included, default 150), TEACHER (generated plans replayed in Newton, default 64), MODEL (the world model's folder,
+# default the shipped lift model), EXTRA (more --set overrides), NAME
 # (report name, default the GPU's model: h100, h200), SMOKE_SLOTS and SMOKE_FRAMES (the smoke's slot counts, default
 # 4,64,128,256: with compile_* each count compiles, ~2 min; and frames, default 40; EXTRA applies to it too).
 # PROBE_PLANS > 0: afterwards, Newton alone replays that many lift_handle plans under each probe setting
@@ -16,6 +17,7 @@
 # and the stiffer membrane with the idle arm parked) into fabric_stretch_<NAME>.{json,md,png}.
 cd "$(dirname "$0")/../.."
 export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1
+MODEL=${MODEL:-models/pretrained/worldcontact-lift-handle}
 R=/tmp/expand_speed; mkdir -p $R "${OUT:-$R/out}"
 NAME=${NAME:-$(nvidia-smi --query-gpu=name --format=csv,noheader | head -1 | grep -o 'H[0-9][0-9]*' | head -1 | tr H h)}
 SETS=(--set sim.device=cuda --set validate.device=cuda --set expand.device=cuda --set sim.iterations=${ITERATIONS:-20}
@@ -26,7 +28,7 @@ case "$1" in
     cat /tmp/gpu/part-* | xz -dc -T0 | tar x -C / || exit 1
     mkdir -p ~/.cache/warp && xz -dc scripts/gpu/kernel_cache/warp-1.19.0_newton-1.8.0_sm90.tar.xz | tar x -C ~/.cache/warp --skip-old-files
     nvidia-smi --query-gpu=name,memory.used --format=csv
-    python3 -m benchmarks.expand_smoke --device cuda ${EXTRA:-} --slots ${SMOKE_SLOTS:-4,64,128,256} \
+    python3 -m benchmarks.expand_smoke --device cuda --model $MODEL ${EXTRA:-} --slots ${SMOKE_SLOTS:-4,64,128,256} \
       --frames ${SMOKE_FRAMES:-40} --out $R/smoke.json || exit 1
     cp $R/smoke.json "$OUT"/ 2>/dev/null
     PARKED="scene.robot.left_base_xyz_yaw_deg=[-0.75, 0.0, 0.0, 0.0]"
@@ -35,7 +37,7 @@ case "$1" in
       "scene.bag.target_vertices=5000,sim.bag.particle_radius_m=0.002,sim.self_contact_margin_m=0.0015,sim.self_contact_gap_m=0.001,tasks.common.closed_m=0.002")
     cat > $R/job.sh <<JOB
 python3 -m benchmarks.expand_speed --params params.yaml ${SETS[*]@Q} --worlds ${WORLDS:-32,64,128} \\
-  --newton-seconds ${NEWTON_S:-45} --target ${TARGET:-150} --teacher-plans ${TEACHER:-64} --work $R/work \\
+  --model $MODEL --newton-seconds ${NEWTON_S:-45} --target ${TARGET:-150} --teacher-plans ${TEACHER:-64} --work $R/work \\
   --out $R/expand_speed_$NAME.json
 [ "${PROBE_PLANS:-0}" -gt 0 ] && python3 -m benchmarks.fabric_stretch --params params.yaml --set sim.device=cuda \\
   --set validate.device=cuda --set sim.iterations=${ITERATIONS:-20} --set sim.worlds=${PROBE_PLANS:-0} \\
