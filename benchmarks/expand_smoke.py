@@ -7,7 +7,8 @@ run eagerly and uncompiled (the same trajectories), and its cost per frame again
 The shipped model rolls out the params' bag at rest on the table under a scripted reach of the right arm (its frame-0
 posture held, then a lift), in every slot; the first slot count also runs eagerly, nothing captured or
 compiled, and the largest difference between the two trajectories is reported; every count is timed after a warm-up
-(ms per frame, slot-frames per second, the parts of a frame). No Newton, no trajectory store beyond the scene's: a minute on a bare GPU machine.
+(ms per frame, slot-frames per second, the parts of a frame). No Newton, no trajectory store beyond the scene's: a
+minute on a bare GPU machine.
 """
 
 from __future__ import annotations
@@ -113,7 +114,8 @@ def main(argv: list[str] | None = None) -> None:
                 eager = make(slots, cuda_graph=False, compile_network=False, compile_projection=False)
                 _, x_eager = _timed(eager.rollout(args.frames), plan, args.frames)
                 row["max_graph_vs_eager_m"] = float(np.nanmax(np.abs(x_graph - x_eager)))
-                row["compiled"] = {k: getattr(model.cfg.slots, k) for k in ("compile_network", "compile_projection")}
+                row["compiled"] = {key: getattr(model.cfg.slots, key)
+                                   for key in ("compile_network", "compile_projection")}
                 del eager
             rows.append(row)
             print(row, flush=True)

@@ -110,7 +110,7 @@ class TrajectoryWriter:
                 self._root.create_group(g)
             if self.write_processes:
                 self._pool = spawn_pool(self.write_processes)
-                for _ in range(self.write_processes):  # each process starts (imports zarr) now, not at the first episode
+                for _ in range(self.write_processes):  # each starts (imports zarr) now, not at the first episode
                     self._pool.submit(os.getpid)
         except BaseException:
             self._abort()

@@ -103,6 +103,7 @@ class FixedStepProjection:
         self.bvh: ClothBVH | None = None
         self.stats = self.zero_stats()
         self._iteration, self._edge_pass = self._one_iteration, edge_pass
+        self.compiled = False  # compile_passes was called
 
     def zero_stats(self) -> dict[str, Tensor]:
         return {k: torch.zeros((), dtype=torch.float32 if k.startswith("max") else torch.long, device=self.device)
@@ -183,6 +184,7 @@ class FixedStepProjection:
         Inductor fuses their many small kernels; the results are the same passes'. For the static path (CUDA)."""
         self._iteration = torch.compile(self._one_iteration, fullgraph=True, dynamic=False, backend=backend)
         self._edge_pass = torch.compile(edge_pass, fullgraph=True, dynamic=False, backend=backend)
+        self.compiled = True
 
     @torch.no_grad()
     def joint(self, x_prev: Tensor, x: Tensor, v: Tensor, link_poses: Tensor, dt: float) -> tuple[Tensor, Tensor]:

@@ -251,9 +251,8 @@ class SlotExpansion:
         """Nothing left to load (queue empty, no proposal due): the running episodes move, where they stand, to half
         as many slots while they fill at most half of them, down to slots.tail_min_slots, when the frames still to
         run would save more than a capture costs (a frame's saving taken as a quarter of its measured cost)."""
-        least, slots = self.cfg.slots.tail_min_slots, self.cfg.slots
-        compiling = self.rollout.device.type == "cuda" and (slots.compile_network or slots.compile_projection)
-        if least == 0 or compiling or self.queue or self._may_propose():
+        least = self.cfg.slots.tail_min_slots
+        if least == 0 or self.rollout.compiled or self.queue or self._may_propose():
             return
         busy = [s for s, r in enumerate(self.slots) if r is not None]
         size = len(self.slots)

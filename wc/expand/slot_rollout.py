@@ -77,6 +77,11 @@ class SlotRollout:
         self.part_s = dict.fromkeys(PARTS, 0.0)  # device time per part (CUDA: read at `read_failures`)
         self.advanced = 0  # frames advanced
 
+    @property
+    def compiled(self) -> bool:
+        """Whether a frame runs code compiled for this slot count (the network's step or the projection's passes)."""
+        return self.compile_network or self.fixed.compiled
+
     def _build_network(self) -> None:
         """CUDA: the static-shape step (fixed-K neighbours, capturable); the CPU: the Verlet-skin neighbour cache
         (the same pairs, searched as needed: cheaper there, and nothing is captured)."""
